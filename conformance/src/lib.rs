@@ -1,0 +1,2 @@
+//! The `.vdag` conformance suite.
+#![deny(missing_docs)]

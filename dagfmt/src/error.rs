@@ -1,0 +1,199 @@
+//! Errors with stable codes and byte offsets.
+//!
+//! Every rule of spec/VDAG.md § Validation rules has one [`ErrorCode`]; the
+//! code strings (`E001` …) are stable across versions and are what the
+//! conformance suite's malformed-file cases expect.
+
+use std::fmt;
+
+macro_rules! error_codes {
+    ($( $(#[$doc:meta])* $variant:ident = $code:literal, $name:literal; )*) => {
+        /// The stable identifier of a validation rule (spec/VDAG.md § Validation rules).
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+        pub enum ErrorCode {
+            $( $(#[$doc])* $variant, )*
+        }
+
+        impl ErrorCode {
+            /// Every code, in numeric order.
+            pub const ALL: &'static [ErrorCode] = &[$(ErrorCode::$variant,)*];
+
+            /// The stable code, such as `"E002"`.
+            pub fn code(self) -> &'static str {
+                match self { $(ErrorCode::$variant => $code,)* }
+            }
+
+            /// The stable short name, such as `"bad-magic"`.
+            pub fn name(self) -> &'static str {
+                match self { $(ErrorCode::$variant => $name,)* }
+            }
+
+            /// Looks a code up by its code string or its name.
+            pub fn parse(s: &str) -> Option<ErrorCode> {
+                match s {
+                    $($code | $name => Some(ErrorCode::$variant),)*
+                    _ => None,
+                }
+            }
+        }
+    };
+}
+
+error_codes! {
+    /// The file is shorter than the 128-byte header.
+    TruncatedHeader = "E001", "truncated-header";
+    /// The first eight bytes are not the `.vdag` magic.
+    BadMagic = "E002", "bad-magic";
+    /// The major version is not 1.
+    UnsupportedVersion = "E003", "unsupported-version";
+    /// A required feature bit this reader does not know is set.
+    UnknownRequiredFeature = "E004", "unknown-required-feature";
+    /// The header size field is not 128.
+    BadHeaderSize = "E005", "bad-header-size";
+    /// The depth is outside 2 ..= 21.
+    DepthOutOfRange = "E006", "depth-out-of-range";
+    /// The attribute kind is not in the registry.
+    UnknownAttributeKind = "E007", "unknown-attribute-kind";
+    /// The root cube's corner is not finite or its size is not finite and positive.
+    BadRootCube = "E008", "bad-root-cube";
+    /// A reserved header or section-table field is not zero.
+    NonzeroReserved = "E009", "nonzero-reserved";
+    /// The file's length differs from the header's file size (truncated or extended).
+    FileSizeMismatch = "E010", "file-size-mismatch";
+    /// The header checksum does not match.
+    HeaderChecksum = "E011", "header-checksum";
+    /// The section table runs past the end of the file or has too many or too few entries.
+    BadSectionTable = "E012", "bad-section-table";
+    /// The file exceeds the reader's size limit.
+    FileTooLarge = "E013", "file-too-large";
+    /// A section's byte range runs past the end of the file.
+    SectionOutOfBounds = "E020", "section-out-of-bounds";
+    /// A section does not start at a multiple of 8.
+    SectionMisaligned = "E021", "section-misaligned";
+    /// Sections overlap or are not stored in table order.
+    SectionOverlap = "E022", "section-overlap";
+    /// Bytes between sections (or after the section table) are not minimal zero padding.
+    BadPadding = "E023", "bad-padding";
+    /// The level sections are missing, duplicated, out of order or of the wrong kind.
+    BadLevelSections = "E024", "bad-level-sections";
+    /// A section kind this reader does not know is not marked optional.
+    UnknownSectionKind = "E025", "unknown-section-kind";
+    /// A pointer width is not 1 to 4 (node level) or not 0 (other sections).
+    BadPointerWidth = "E026", "bad-pointer-width";
+    /// A pointer width is not the smallest that addresses the child level.
+    PointerWidthNotMinimal = "E027", "pointer-width-not-minimal";
+    /// A section's checksum does not match.
+    SectionChecksum = "E028", "section-checksum";
+    /// A level exceeds the per-level limits (bytes or leaves).
+    LevelTooLarge = "E030", "level-too-large";
+    /// The root level holds other than one node (or zero, with every level empty).
+    BadRootLevel = "E040", "bad-root-level";
+    /// A node has an empty child mask.
+    EmptyChildMask = "E041", "empty-child-mask";
+    /// A node record runs past the end of its section.
+    TruncatedNode = "E042", "truncated-node";
+    /// A section's item count differs from what its bytes hold.
+    ItemCountMismatch = "E043", "item-count-mismatch";
+    /// The padding after a node's pointers is not zero.
+    NonzeroNodePadding = "E044", "nonzero-node-padding";
+    /// A pointer lies outside the child level.
+    PointerOutOfRange = "E045", "pointer-out-of-range";
+    /// A pointer does not address the start of a node record.
+    PointerNotAtNode = "E046", "pointer-not-at-node";
+    /// A node or leaf of a level below the root is referenced by no pointer.
+    UnreferencedNode = "E047", "unreferenced-node";
+    /// A leaf mask is zero.
+    EmptyLeafMask = "E048", "empty-leaf-mask";
+    /// Attribute kind 0 but a node's attribute bits are not zero.
+    NonzeroAttribute = "E060", "nonzero-attribute";
+    /// Attribute kind 1 but a node's stored voxel count is wrong.
+    WrongVoxelCount = "E061", "wrong-voxel-count";
+    /// The header's voxel count differs from the voxels in the DAG.
+    HeaderVoxelCount = "E062", "header-voxel-count";
+    /// A voxel colour section is present without attribute kind 1, twice, or with a wrong count.
+    BadColorSection = "E063", "bad-color-section";
+}
+
+impl fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} {}", self.code(), self.name())
+    }
+}
+
+/// A violation of the format: what rule, where, and a human message.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FormatError {
+    /// The rule broken.
+    pub code: ErrorCode,
+    /// Byte offset in the file of the offending bytes.
+    pub offset: u64,
+    /// The level concerned, if any.
+    pub level: Option<u8>,
+    /// The node concerned, as its index in its level (in storage order), if any.
+    pub node: Option<u64>,
+    /// What is wrong, for people.
+    pub message: String,
+}
+
+impl FormatError {
+    /// A violation at `offset` with no level or node.
+    pub fn new(code: ErrorCode, offset: u64, message: impl Into<String>) -> Self {
+        FormatError { code, offset, level: None, node: None, message: message.into() }
+    }
+
+    /// Attaches the level concerned.
+    pub fn at_level(mut self, level: u8) -> Self {
+        self.level = Some(level);
+        self
+    }
+
+    /// Attaches the node concerned (its index within its level).
+    pub fn at_node(mut self, node: u64) -> Self {
+        self.node = Some(node);
+        self
+    }
+}
+
+impl fmt::Display for FormatError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} at byte {:#x}", self.code, self.offset)?;
+        if let Some(level) = self.level {
+            write!(f, " (level {level}")?;
+            if let Some(node) = self.node {
+                write!(f, ", node {node}")?;
+            }
+            write!(f, ")")?;
+        }
+        write!(f, ": {}", self.message)
+    }
+}
+
+impl std::error::Error for FormatError {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codes_are_unique_and_parse_back() {
+        let mut codes: Vec<_> = ErrorCode::ALL.iter().map(|c| c.code()).collect();
+        codes.sort();
+        codes.dedup();
+        assert_eq!(codes.len(), ErrorCode::ALL.len());
+        for &c in ErrorCode::ALL {
+            assert_eq!(ErrorCode::parse(c.code()), Some(c));
+            assert_eq!(ErrorCode::parse(c.name()), Some(c));
+        }
+    }
+
+    #[test]
+    fn display_names_offset_level_node() {
+        let e = FormatError::new(ErrorCode::EmptyChildMask, 0x1c8, "node has no children")
+            .at_level(3)
+            .at_node(7);
+        assert_eq!(
+            e.to_string(),
+            "E041 empty-child-mask at byte 0x1c8 (level 3, node 7): node has no children"
+        );
+    }
+}

@@ -1,0 +1,30 @@
+//! `dagfmt`: the `.vdag` sparse voxel DAG format (spec/VDAG.md).
+//!
+//! - [`layout`]: byte positions, constants and the fixed-size on-disk records;
+//! - [`reader`]: [`Dag`], a zero-copy view over `&[u8]` that never panics;
+//! - [`builder`]: [`DagBuilder`], which makes a file from voxels with
+//!   per-level deduplication;
+//! - [`validate`]: checks every rule of the spec and reports every violation;
+//! - [`transport`]: the zstd-compressed transport form;
+//! - [`batch`]: the text and binary ray and hit batch formats;
+//! - [`morton`]: Morton codes, the order of voxels in the DAG.
+//!
+//! The library does no file I/O except [`mmap`] (feature `mmap`), a helper
+//! that memory-maps a file for the reader.
+#![deny(missing_docs)]
+
+pub mod batch;
+pub mod builder;
+pub mod error;
+pub mod layout;
+#[cfg(feature = "mmap")]
+pub mod mmap;
+pub mod morton;
+pub mod reader;
+pub mod transport;
+pub mod validate;
+
+// pub use builder::DagBuilder;
+pub use error::{ErrorCode, FormatError};
+pub use layout::{AttributeKind, SectionKind};
+pub use reader::{Dag, Header, LeafMask, LevelSection, Node, NodeRef};

@@ -1,0 +1,855 @@
+//! The zero-copy reader.
+//!
+//! [`Dag::open`] checks the header and the section table (O(sections) work,
+//! nothing allocated in proportion to the file) and then hands out views into
+//! the caller's bytes. Every access that follows a pointer is bounds-checked and
+//! returns a [`FormatError`] instead of panicking, so the reader is safe on any
+//! input; proving a file fully correct is the validator's job
+//! ([`crate::validate`]).
+
+use crate::error::{ErrorCode, FormatError};
+use crate::layout::{
+    self, AttributeKind, COUNT_SATURATED, HEADER_SIZE, MAGIC, MAX_DEPTH, MAX_FILE_SIZE,
+    MAX_LEAF_COUNT, MAX_NODE_LEVEL_BYTES, MAX_SECTIONS, MIN_DEPTH, RawHeader, RawSectionEntry,
+    SECTION_ALIGN, SECTION_ENTRY_SIZE, SectionKind,
+};
+use crate::morton;
+
+/// The decoded file header.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Major format version (1).
+    pub version_major: u16,
+    /// Minor format version.
+    pub version_minor: u16,
+    /// Required feature bits.
+    pub required_features: u32,
+    /// Optional feature bits.
+    pub optional_features: u32,
+    /// Depth D: 2^D voxels along each axis.
+    pub depth: u8,
+    /// Meaning of the 24 attribute bits.
+    pub attribute_kind: AttributeKind,
+    /// Number of section table entries.
+    pub section_count: u16,
+    /// World-space minimum corner of the root cube.
+    pub root_min: [f64; 3],
+    /// World-space edge length of the root cube.
+    pub root_size: f64,
+    /// Total file length in bytes.
+    pub file_size: u64,
+    /// Total number of set voxels.
+    pub voxel_count: u64,
+    /// Stored header checksum.
+    pub header_crc: u32,
+}
+
+/// One decoded section table entry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SectionEntry {
+    /// Position in the section table.
+    pub index: u16,
+    /// What the section holds.
+    pub kind: SectionKind,
+    /// Level (level sections), else 0.
+    pub level: u8,
+    /// Pointer width in bytes (node levels), else 0.
+    pub pointer_width: u8,
+    /// Byte offset from the start of the file.
+    pub offset: u64,
+    /// Length in bytes.
+    pub length: u64,
+    /// Nodes, leaves or colours held.
+    pub item_count: u64,
+    /// Stored CRC-32C of the section bytes.
+    pub crc: u32,
+}
+
+impl SectionEntry {
+    /// Byte offset of this entry in the file.
+    pub fn entry_offset(&self) -> u64 {
+        (HEADER_SIZE + usize::from(self.index) * SECTION_ENTRY_SIZE) as u64
+    }
+}
+
+/// The bytes of one level of the DAG.
+#[derive(Clone, Copy, Debug)]
+pub struct LevelSection<'a> {
+    /// Level number: 0 is the root.
+    pub level: u8,
+    /// The section bytes.
+    pub bytes: &'a [u8],
+    /// Byte offset of the section in the file.
+    pub file_offset: u64,
+    /// Nodes (or leaves) in the level.
+    pub node_count: u64,
+    /// Pointer width of a node level; 0 for the leaf level.
+    pub pointer_width: u8,
+    /// Whether this is the leaf level (64-bit 4³ masks).
+    pub is_leaf: bool,
+}
+
+impl LevelSection<'_> {
+    /// Number of addressable units: 4-byte words of a node level, leaves of the leaf level.
+    pub fn units(&self) -> u64 {
+        if self.is_leaf { self.bytes.len() as u64 / 8 } else { self.bytes.len() as u64 / 4 }
+    }
+}
+
+/// An interior node record.
+#[derive(Clone, Copy, Debug)]
+pub struct Node<'a> {
+    /// Level of the node.
+    pub level: u8,
+    /// Offset of the record in its level, in 4-byte words.
+    pub word: u32,
+    /// The 32-bit header word.
+    pub header: u32,
+    /// Pointer width in bytes.
+    pub pointer_width: u8,
+    /// The pointer bytes (exactly `child_count * pointer_width`).
+    pointers: &'a [u8],
+}
+
+impl Node<'_> {
+    /// The 8-bit child mask (bit i set when child i exists).
+    #[inline]
+    pub fn child_mask(&self) -> u8 {
+        self.header as u8
+    }
+
+    /// The 24 attribute bits.
+    #[inline]
+    pub fn attribute(&self) -> u32 {
+        self.header >> layout::CHILD_MASK_BITS
+    }
+
+    /// Number of children.
+    #[inline]
+    pub fn child_count(&self) -> u32 {
+        self.child_mask().count_ones()
+    }
+
+    /// The pointer stored at `rank` (0 = first set mask bit).
+    #[inline]
+    pub fn pointer_at(&self, rank: u32) -> u32 {
+        let w = usize::from(self.pointer_width);
+        let start = rank as usize * w;
+        let mut v = 0u32;
+        for (i, &b) in self.pointers[start..start + w].iter().enumerate() {
+            v |= u32::from(b) << (8 * i);
+        }
+        v
+    }
+
+    /// The pointer to child `child` (0..8), or `None` when the child is empty.
+    #[inline]
+    pub fn child_pointer(&self, child: u32) -> Option<u32> {
+        let mask = u32::from(self.child_mask());
+        if child >= 8 || mask & (1 << child) == 0 {
+            return None;
+        }
+        Some(self.pointer_at((mask & ((1 << child) - 1)).count_ones()))
+    }
+
+    /// Size of the record in bytes, padding included.
+    pub fn record_size(&self) -> u64 {
+        layout::node_record_size(self.child_count(), self.pointer_width)
+    }
+}
+
+/// A 64-bit occupancy mask of a 4³ brick (bit [`layout::leaf_bit`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct LeafMask(pub u64);
+
+impl LeafMask {
+    /// Whether the voxel at brick coordinates (each 0..4) is set.
+    #[inline]
+    pub fn is_set(self, x: u32, y: u32, z: u32) -> bool {
+        self.0 >> layout::leaf_bit(x & 3, y & 3, z & 3) & 1 != 0
+    }
+
+    /// The 8-bit mask of the 2³ sub-bricks that hold a voxel (bit = child index).
+    #[inline]
+    pub fn sub_brick_mask(self) -> u8 {
+        let mut m = 0u8;
+        for i in 0..8 {
+            if (self.0 >> (8 * i)) & 0xff != 0 {
+                m |= 1 << i;
+            }
+        }
+        m
+    }
+
+    /// The 8-bit voxel mask of sub-brick `child` (0..8).
+    #[inline]
+    pub fn sub_brick(self, child: u32) -> u8 {
+        (self.0 >> (8 * child)) as u8
+    }
+
+    /// Number of set voxels.
+    #[inline]
+    pub fn count(self) -> u32 {
+        self.0.count_ones()
+    }
+}
+
+/// A reference to a node of any level: a word offset for interior levels, an
+/// index for the leaf level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct NodeRef {
+    /// Level of the node.
+    pub level: u8,
+    /// Word offset (interior level) or leaf index (leaf level).
+    pub pointer: u32,
+}
+
+/// A memory-safe, zero-copy view of a `.vdag` file.
+#[derive(Clone, Debug)]
+pub struct Dag<'a> {
+    bytes: &'a [u8],
+    header: Header,
+    sections: Vec<SectionEntry>,
+    levels: Vec<LevelSection<'a>>,
+    colors: Option<&'a [u8]>,
+}
+
+pub(crate) fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
+    bytes.get(at..at + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+}
+
+pub(crate) fn read_u64(bytes: &[u8], at: usize) -> Option<u64> {
+    bytes.get(at..at + 8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+}
+
+/// Decodes the header without judging it.
+pub fn decode_header(raw: &RawHeader) -> Result<Header, FormatError> {
+    let kind = AttributeKind::from_raw(raw.attribute_kind).ok_or_else(|| {
+        FormatError::new(
+            ErrorCode::UnknownAttributeKind,
+            25,
+            format!("attribute kind {} is not in the registry", raw.attribute_kind),
+        )
+    })?;
+    Ok(Header {
+        version_major: u16::from_le(raw.version_major),
+        version_minor: u16::from_le(raw.version_minor),
+        required_features: u32::from_le(raw.required_features),
+        optional_features: u32::from_le(raw.optional_features),
+        depth: raw.depth,
+        attribute_kind: kind,
+        section_count: u16::from_le(raw.section_count),
+        root_min: raw.root_min.map(|b| f64::from_bits(u64::from_le(b))),
+        root_size: f64::from_bits(u64::from_le(raw.root_size)),
+        file_size: u64::from_le(raw.file_size),
+        voxel_count: u64::from_le(raw.voxel_count),
+        header_crc: u32::from_le(raw.header_crc),
+    })
+}
+
+/// Decodes one section table entry without judging it.
+pub fn decode_section_entry(index: u16, raw: &RawSectionEntry) -> Result<SectionEntry, FormatError> {
+    let entry_offset = (HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE) as u64;
+    let raw_kind = u32::from_le(raw.kind);
+    let kind = SectionKind::from_raw(raw_kind).ok_or_else(|| {
+        FormatError::new(
+            ErrorCode::UnknownSectionKind,
+            entry_offset,
+            format!("section {index} has unknown required kind {raw_kind:#x}"),
+        )
+    })?;
+    Ok(SectionEntry {
+        index,
+        kind,
+        level: raw.level,
+        pointer_width: raw.pointer_width,
+        offset: u64::from_le(raw.offset),
+        length: u64::from_le(raw.length),
+        item_count: u64::from_le(raw.item_count),
+        crc: u32::from_le(raw.crc),
+    })
+}
+
+/// The structure of a file as far as the header and section table tell it.
+#[derive(Clone, Debug)]
+pub(crate) struct Layout {
+    pub header: Header,
+    pub sections: Vec<SectionEntry>,
+}
+
+/// Parses and checks the header and section table.
+///
+/// Fatal problems (those that make the file impossible to interpret safely)
+/// are returned as `Err`; problems that a lenient reader can live with
+/// (reserved fields, checksums, padding, non-minimal pointer widths) are left
+/// to the validator and not looked at here.
+pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
+    let len = bytes.len() as u64;
+    if bytes.len() < HEADER_SIZE {
+        return Err(FormatError::new(
+            ErrorCode::TruncatedHeader,
+            len,
+            format!("file is {len} bytes, shorter than the {HEADER_SIZE}-byte header"),
+        ));
+    }
+    if bytes[..8] != MAGIC {
+        return Err(FormatError::new(ErrorCode::BadMagic, 0, "not a .vdag file (bad magic)"));
+    }
+    let raw: RawHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_SIZE]);
+    let major = u16::from_le(raw.version_major);
+    if major != layout::VERSION_MAJOR {
+        return Err(FormatError::new(
+            ErrorCode::UnsupportedVersion,
+            8,
+            format!("major version {major} is not supported (this reader reads version 1)"),
+        ));
+    }
+    let header = decode_header(&raw)?;
+    if header.required_features & !layout::KNOWN_REQUIRED_FEATURES != 0 {
+        return Err(FormatError::new(
+            ErrorCode::UnknownRequiredFeature,
+            16,
+            format!("unknown required feature bits {:#x}", header.required_features),
+        ));
+    }
+    let header_size = u32::from_le(raw.header_size);
+    if header_size as usize != HEADER_SIZE {
+        return Err(FormatError::new(
+            ErrorCode::BadHeaderSize,
+            12,
+            format!("header size is {header_size}, expected {HEADER_SIZE}"),
+        ));
+    }
+    if !(MIN_DEPTH..=MAX_DEPTH).contains(&header.depth) {
+        return Err(FormatError::new(
+            ErrorCode::DepthOutOfRange,
+            24,
+            format!("depth {} is outside {MIN_DEPTH}..={MAX_DEPTH}", header.depth),
+        ));
+    }
+    if !header.root_min.iter().all(|v| v.is_finite())
+        || !header.root_size.is_finite()
+        || header.root_size <= 0.0
+    {
+        return Err(FormatError::new(
+            ErrorCode::BadRootCube,
+            32,
+            format!(
+                "root cube min {:?} size {} is not finite with a positive size",
+                header.root_min, header.root_size
+            ),
+        ));
+    }
+    if len > MAX_FILE_SIZE {
+        return Err(FormatError::new(
+            ErrorCode::FileTooLarge,
+            0,
+            format!("file is {len} bytes, over the {MAX_FILE_SIZE}-byte limit"),
+        ));
+    }
+    if header.file_size != len {
+        return Err(FormatError::new(
+            ErrorCode::FileSizeMismatch,
+            64,
+            format!("header says {} bytes but the file has {len}", header.file_size),
+        ));
+    }
+    let level_sections = u16::from(header.depth) - 1;
+    let count = header.section_count;
+    if count < level_sections || count > MAX_SECTIONS {
+        return Err(FormatError::new(
+            ErrorCode::BadSectionTable,
+            26,
+            format!(
+                "{count} sections declared; depth {} needs {level_sections} level sections and at most {MAX_SECTIONS} in all",
+                header.depth
+            ),
+        ));
+    }
+    let table_end = HEADER_SIZE + usize::from(count) * SECTION_ENTRY_SIZE;
+    if table_end > bytes.len() {
+        return Err(FormatError::new(
+            ErrorCode::BadSectionTable,
+            HEADER_SIZE as u64,
+            format!("the section table of {count} entries runs past the end of the file"),
+        ));
+    }
+    let mut sections = Vec::with_capacity(usize::from(count));
+    let mut previous_end = table_end as u64;
+    for index in 0..count {
+        let at = HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE;
+        let raw: RawSectionEntry = bytemuck::pod_read_unaligned(&bytes[at..at + SECTION_ENTRY_SIZE]);
+        let entry = decode_section_entry(index, &raw)?;
+        check_section_entry(&header, &entry, len, previous_end)?;
+        previous_end = entry.offset + entry.length;
+        sections.push(entry);
+    }
+    Ok(Layout { header, sections })
+}
+
+/// The fatal checks on one section entry: placement and, for level sections,
+/// kind, level, width and size limits.
+fn check_section_entry(
+    header: &Header,
+    entry: &SectionEntry,
+    file_len: u64,
+    previous_end: u64,
+) -> Result<(), FormatError> {
+    let at = entry.entry_offset();
+    let index = entry.index;
+    let end = entry.offset.checked_add(entry.length).filter(|&e| e <= file_len);
+    let Some(_end) = end else {
+        return Err(FormatError::new(
+            ErrorCode::SectionOutOfBounds,
+            at + 8,
+            format!(
+                "section {index} spans {}+{} bytes, past the end of the {file_len}-byte file",
+                entry.offset, entry.length
+            ),
+        ));
+    };
+    if entry.offset % SECTION_ALIGN != 0 {
+        return Err(FormatError::new(
+            ErrorCode::SectionMisaligned,
+            at + 8,
+            format!("section {index} starts at {}, not a multiple of {SECTION_ALIGN}", entry.offset),
+        ));
+    }
+    if entry.offset < previous_end {
+        return Err(FormatError::new(
+            ErrorCode::SectionOverlap,
+            at + 8,
+            format!(
+                "section {index} starts at {} before the previous section (or the table) ends at {previous_end}",
+                entry.offset
+            ),
+        ));
+    }
+    let leaf_level = header.depth - 2;
+    if u16::from(index) <= u16::from(leaf_level) {
+        let level = index as u8;
+        let expected = if level == leaf_level { SectionKind::LeafLevel } else { SectionKind::NodeLevel };
+        if entry.kind != expected || entry.level != level {
+            return Err(FormatError::new(
+                ErrorCode::BadLevelSections,
+                at,
+                format!(
+                    "section {index} must be the {} section of level {level}, found {:?} of level {}",
+                    if expected == SectionKind::LeafLevel { "leaf" } else { "node" },
+                    entry.kind,
+                    entry.level
+                ),
+            )
+            .at_level(level));
+        }
+    } else if matches!(entry.kind, SectionKind::NodeLevel | SectionKind::LeafLevel) {
+        return Err(FormatError::new(
+            ErrorCode::BadLevelSections,
+            at,
+            format!("section {index}: extra level section after the {} level sections", leaf_level + 1),
+        ));
+    }
+    match entry.kind {
+        SectionKind::NodeLevel => {
+            if !(1..=4).contains(&entry.pointer_width) {
+                return Err(FormatError::new(
+                    ErrorCode::BadPointerWidth,
+                    at + 5,
+                    format!("level {} has pointer width {}, not 1 to 4", entry.level, entry.pointer_width),
+                )
+                .at_level(entry.level));
+            }
+            if entry.length > MAX_NODE_LEVEL_BYTES || entry.item_count > entry.length / 8 {
+                let code = if entry.length > MAX_NODE_LEVEL_BYTES {
+                    ErrorCode::LevelTooLarge
+                } else {
+                    ErrorCode::ItemCountMismatch
+                };
+                return Err(FormatError::new(
+                    code,
+                    at + 16,
+                    format!(
+                        "level {} declares {} nodes in {} bytes (each node takes at least 8, a level at most {MAX_NODE_LEVEL_BYTES})",
+                        entry.level, entry.item_count, entry.length
+                    ),
+                )
+                .at_level(entry.level));
+            }
+        }
+        SectionKind::LeafLevel => {
+            if entry.pointer_width != 0 {
+                return Err(FormatError::new(
+                    ErrorCode::BadPointerWidth,
+                    at + 5,
+                    format!("the leaf level has pointer width {}, must be 0", entry.pointer_width),
+                )
+                .at_level(entry.level));
+            }
+            if entry.item_count > MAX_LEAF_COUNT {
+                return Err(FormatError::new(
+                    ErrorCode::LevelTooLarge,
+                    at + 24,
+                    format!("{} leaves exceed the limit of {MAX_LEAF_COUNT}", entry.item_count),
+                )
+                .at_level(entry.level));
+            }
+            if entry.item_count.checked_mul(8) != Some(entry.length) {
+                return Err(FormatError::new(
+                    ErrorCode::ItemCountMismatch,
+                    at + 24,
+                    format!("{} leaves need {} bytes, section has {}", entry.item_count, entry.item_count.saturating_mul(8), entry.length),
+                )
+                .at_level(entry.level));
+            }
+        }
+        SectionKind::VoxelColors => {
+            if entry.pointer_width != 0 {
+                return Err(FormatError::new(
+                    ErrorCode::BadPointerWidth,
+                    at + 5,
+                    format!("the colour section has pointer width {}, must be 0", entry.pointer_width),
+                ));
+            }
+            if header.attribute_kind != AttributeKind::VoxelCount
+                || entry.item_count != header.voxel_count
+                || entry.item_count.checked_mul(4) != Some(entry.length)
+            {
+                return Err(FormatError::new(
+                    ErrorCode::BadColorSection,
+                    at,
+                    format!(
+                        "colour section of {} colours in {} bytes; needs attribute kind 1 and one 4-byte colour per voxel ({} voxels)",
+                        entry.item_count, entry.length, header.voxel_count
+                    ),
+                ));
+            }
+        }
+        SectionKind::UnknownOptional(_) => {}
+    }
+    Ok(())
+}
+
+impl<'a> Dag<'a> {
+    /// Opens a `.vdag` held in `bytes` (typically a memory map).
+    ///
+    /// Checks the header and section table only: O(number of sections).
+    /// Checksums, padding and the node graph are checked by
+    /// [`crate::validate::validate`], and every later access is bounds-checked.
+    pub fn open(bytes: &'a [u8]) -> Result<Self, FormatError> {
+        let Layout { header, sections } = parse_layout(bytes)?;
+        let level_count = usize::from(header.depth) - 1;
+        let mut levels = Vec::with_capacity(level_count);
+        let mut colors = None;
+        for entry in &sections {
+            let range = entry.offset as usize..(entry.offset + entry.length) as usize;
+            match entry.kind {
+                SectionKind::NodeLevel | SectionKind::LeafLevel => levels.push(LevelSection {
+                    level: entry.level,
+                    bytes: &bytes[range],
+                    file_offset: entry.offset,
+                    node_count: entry.item_count,
+                    pointer_width: entry.pointer_width,
+                    is_leaf: entry.kind == SectionKind::LeafLevel,
+                }),
+                SectionKind::VoxelColors => {
+                    if colors.is_some() {
+                        return Err(FormatError::new(
+                            ErrorCode::BadColorSection,
+                            entry.entry_offset(),
+                            "more than one colour section",
+                        ));
+                    }
+                    colors = Some(&bytes[range]);
+                }
+                SectionKind::UnknownOptional(_) => {}
+            }
+        }
+        let dag = Dag { bytes, header, sections, levels, colors };
+        let root = &dag.levels[0];
+        let empty = root.node_count == 0;
+        if root.node_count > 1 || (empty && dag.levels.iter().any(|l| l.node_count != 0 || !l.bytes.is_empty())) {
+            return Err(FormatError::new(
+                ErrorCode::BadRootLevel,
+                dag.sections[0].entry_offset() + 24,
+                format!(
+                    "the root level holds {} nodes; it must hold 1, or 0 with every level empty",
+                    root.node_count
+                ),
+            )
+            .at_level(0));
+        }
+        if !empty && root.bytes.is_empty() {
+            return Err(FormatError::new(
+                ErrorCode::TruncatedNode,
+                root.file_offset,
+                "the root level is empty but declares a node",
+            )
+            .at_level(0));
+        }
+        Ok(dag)
+    }
+
+    /// The whole file.
+    pub fn bytes(&self) -> &'a [u8] {
+        self.bytes
+    }
+
+    /// The decoded header.
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// The section table.
+    pub fn sections(&self) -> &[SectionEntry] {
+        &self.sections
+    }
+
+    /// Depth D.
+    pub fn depth(&self) -> u32 {
+        u32::from(self.header.depth)
+    }
+
+    /// Voxels along each axis: 2^D.
+    pub fn resolution(&self) -> u64 {
+        1 << self.header.depth
+    }
+
+    /// Level of the leaf masks: D - 2.
+    pub fn leaf_level(&self) -> u8 {
+        self.header.depth - 2
+    }
+
+    /// Whether the volume holds no voxel.
+    pub fn is_empty(&self) -> bool {
+        self.levels[0].node_count == 0
+    }
+
+    /// The level sections, root first (D - 1 of them; the last is the leaf level).
+    pub fn levels(&self) -> &[LevelSection<'a>] {
+        &self.levels
+    }
+
+    /// The voxel colour section (RGBA8 per voxel, dense index order), if present.
+    pub fn colors(&self) -> Option<&'a [u8]> {
+        self.colors
+    }
+
+    /// The root node, or `None` for an empty volume.
+    pub fn root(&self) -> Option<NodeRef> {
+        (!self.is_empty()).then_some(NodeRef { level: 0, pointer: 0 })
+    }
+
+    /// The interior node at `word` of interior level `level`.
+    pub fn node(&self, level: u8, word: u32) -> Result<Node<'a>, FormatError> {
+        let section = self.levels.get(usize::from(level)).filter(|s| !s.is_leaf).ok_or_else(|| {
+            FormatError::new(ErrorCode::PointerOutOfRange, 0, format!("level {level} is not an interior level"))
+        })?;
+        let at = word as usize * 4;
+        let header = read_u32(section.bytes, at).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::PointerOutOfRange,
+                section.file_offset + at as u64,
+                format!("word {word} is outside level {level} ({} bytes)", section.bytes.len()),
+            )
+            .at_level(level)
+        })?;
+        let width = section.pointer_width;
+        let pointer_bytes = (header as u8).count_ones() as usize * usize::from(width);
+        let pointers = section.bytes.get(at + 4..at + 4 + pointer_bytes).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::TruncatedNode,
+                section.file_offset + at as u64,
+                format!("node at word {word} runs past the end of level {level}"),
+            )
+            .at_level(level)
+        })?;
+        Ok(Node { level, word, header, pointer_width: width, pointers })
+    }
+
+    /// The leaf mask at `index` of the leaf level.
+    pub fn leaf(&self, index: u32) -> Result<LeafMask, FormatError> {
+        let section = self.levels.last().expect("depth >= 2 gives at least one level");
+        read_u64(section.bytes, index as usize * 8).map(LeafMask).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::PointerOutOfRange,
+                section.file_offset + u64::from(index) * 8,
+                format!("leaf {index} is outside the leaf level ({} leaves)", section.units()),
+            )
+            .at_level(section.level)
+        })
+    }
+
+    /// World-space position of grid point `p` (voxel units, 0..2^D per axis).
+    pub fn grid_to_world(&self, p: [f64; 3]) -> [f64; 3] {
+        let scale = self.header.root_size / self.resolution() as f64;
+        [0, 1, 2].map(|i| self.header.root_min[i] + p[i] * scale)
+    }
+
+    /// Grid position (voxel units) of world-space point `p`.
+    pub fn world_to_grid(&self, p: [f64; 3]) -> [f64; 3] {
+        let scale = self.resolution() as f64 / self.header.root_size;
+        [0, 1, 2].map(|i| (p[i] - self.header.root_min[i]) * scale)
+    }
+
+    /// Follows the path of voxel `(x, y, z)` from the root. Calls `visit` with
+    /// each interior node and the child index taken, and returns the leaf mask
+    /// reached, or `None` when the path leaves the DAG earlier.
+    fn descend(
+        &self,
+        x: u32,
+        y: u32,
+        z: u32,
+        mut visit: impl FnMut(&Node<'a>, u32) -> Result<(), FormatError>,
+    ) -> Result<Option<LeafMask>, FormatError> {
+        let depth = self.depth();
+        if self.is_empty() || [x, y, z].iter().any(|&c| u64::from(c) >= self.resolution()) {
+            return Ok(None);
+        }
+        let leaf_level = self.leaf_level();
+        let mut pointer = 0u32;
+        for level in 0..leaf_level {
+            let node = self.node(level, pointer)?;
+            let shift = depth - 1 - u32::from(level);
+            let child = ((x >> shift) & 1) | (((y >> shift) & 1) << 1) | (((z >> shift) & 1) << 2);
+            visit(&node, child)?;
+            match node.child_pointer(child) {
+                Some(p) => pointer = p,
+                None => return Ok(None),
+            }
+        }
+        self.leaf(pointer).map(Some)
+    }
+
+    /// Whether voxel `(x, y, z)` is set. Coordinates outside the volume are not set.
+    pub fn is_set(&self, x: u32, y: u32, z: u32) -> Result<bool, FormatError> {
+        Ok(self.descend(x, y, z, |_, _| Ok(()))?.is_some_and(|leaf| leaf.is_set(x, y, z)))
+    }
+
+    /// Number of voxels in the subtree of `node`, using stored counts where the
+    /// attribute kind is 1 and they are not saturated, else summing the children.
+    pub fn subtree_voxel_count(&self, node: NodeRef) -> Result<u64, FormatError> {
+        if node.level == self.leaf_level() {
+            return Ok(u64::from(self.leaf(node.pointer)?.count()));
+        }
+        let n = self.node(node.level, node.pointer)?;
+        if self.header.attribute_kind == AttributeKind::VoxelCount && n.attribute() != COUNT_SATURATED {
+            return Ok(u64::from(n.attribute()));
+        }
+        let mut total = 0u64;
+        for rank in 0..n.child_count() {
+            let child = NodeRef { level: node.level + 1, pointer: n.pointer_at(rank) };
+            total = total.saturating_add(self.subtree_voxel_count(child)?);
+        }
+        Ok(total)
+    }
+
+    /// The dense index of voxel `(x, y, z)`: its rank among the set voxels in
+    /// Morton order, which addresses per-voxel attribute arrays. `None` when the
+    /// voxel is not set. Needs attribute kind 1 to be fast; works for any kind.
+    pub fn voxel_index(&self, x: u32, y: u32, z: u32) -> Result<Option<u64>, FormatError> {
+        let mut index = 0u64;
+        let leaf = self.descend(x, y, z, |node, child| {
+            for c in 0..child {
+                if let Some(p) = node.child_pointer(c) {
+                    index += self.subtree_voxel_count(NodeRef { level: node.level + 1, pointer: p })?;
+                }
+            }
+            Ok(())
+        })?;
+        Ok(leaf.filter(|l| l.is_set(x, y, z)).map(|l| {
+            let bit = layout::leaf_bit(x & 3, y & 3, z & 3);
+            index + u64::from((l.0 & ((1u64 << bit) - 1)).count_ones())
+        }))
+    }
+
+    /// Iterates over the set voxels in Morton order, yielding their coordinates.
+    pub fn voxels(&self) -> Voxels<'_, 'a> {
+        Voxels::new(self)
+    }
+}
+
+/// Iterator over the set voxels of a [`Dag`], in Morton order. Yields an error
+/// (once, then ends) when it meets a pointer that leads out of bounds.
+#[derive(Debug)]
+pub struct Voxels<'d, 'a> {
+    dag: &'d Dag<'a>,
+    /// Per interior level: the node and the children not yet visited.
+    stack: Vec<(Node<'a>, u8)>,
+    /// Morton prefix of each stack entry's node.
+    prefix: Vec<u64>,
+    /// The current leaf's remaining bits and its Morton prefix.
+    leaf: Option<(u64, u64)>,
+    failed: bool,
+}
+
+impl<'d, 'a> Voxels<'d, 'a> {
+    fn new(dag: &'d Dag<'a>) -> Self {
+        let mut it = Voxels { dag, stack: Vec::new(), prefix: Vec::new(), leaf: None, failed: false };
+        if !dag.is_empty() {
+            if dag.leaf_level() == 0 {
+                match dag.leaf(0) {
+                    Ok(l) => it.leaf = Some((l.0, 0)),
+                    Err(_) => it.failed = true,
+                }
+            } else {
+                match dag.node(0, 0) {
+                    Ok(root) => {
+                        it.stack.push((root, root.child_mask()));
+                        it.prefix.push(0);
+                    }
+                    Err(_) => it.failed = true,
+                }
+            }
+        }
+        it
+    }
+
+    /// The next voxel's Morton code.
+    pub fn next_morton(&mut self) -> Option<Result<u64, FormatError>> {
+        loop {
+            if let Some((bits, prefix)) = &mut self.leaf {
+                if *bits != 0 {
+                    let b = bits.trailing_zeros();
+                    *bits &= *bits - 1;
+                    return Some(Ok(*prefix << 6 | u64::from(b)));
+                }
+                self.leaf = None;
+            }
+            if self.failed {
+                return None;
+            }
+            let (node, remaining) = self.stack.last_mut()?;
+            if *remaining == 0 {
+                self.stack.pop();
+                self.prefix.pop();
+                continue;
+            }
+            let child = remaining.trailing_zeros();
+            *remaining &= *remaining - 1;
+            let node = *node;
+            let prefix = self.prefix.last().copied().unwrap_or(0) << 3 | u64::from(child);
+            let pointer = node.child_pointer(child).expect("bit is in the mask");
+            let next = if node.level + 1 == self.dag.leaf_level() {
+                self.dag.leaf(pointer).map(|l| self.leaf = Some((l.0, prefix)))
+            } else {
+                self.dag.node(node.level + 1, pointer).map(|n| {
+                    self.stack.push((n, n.child_mask()));
+                    self.prefix.push(prefix);
+                })
+            };
+            if let Err(e) = next {
+                self.failed = true;
+                self.stack.clear();
+                return Some(Err(e));
+            }
+        }
+    }
+}
+
+impl Iterator for Voxels<'_, '_> {
+    type Item = Result<[u32; 3], FormatError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        self.next_morton().map(|r| r.map(morton::decode))
+    }
+}

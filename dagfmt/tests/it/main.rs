@@ -1,0 +1,4 @@
+//! dagfmt's integration tests (one test binary, one module per concern).
+
+mod roundtrip;
+mod rules;

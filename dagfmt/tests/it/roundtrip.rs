@@ -1,0 +1,1 @@
+//! Builder → bytes → reader round trips (property tests).

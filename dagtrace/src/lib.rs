@@ -1,0 +1,2 @@
+//! `dagtrace`: ray tracing `.vdag` sparse voxel DAGs.
+#![deny(missing_docs)]

@@ -1,1 +1,714 @@
-//! TODO
+//! The ray and hit batch formats (spec/VDAG.md § Ray and hit batches), text
+//! and binary, in both directions.
+//!
+//! Text rays: a `vdag-rays 1` line, then one ray per line,
+//! `ox oy oz dx dy dz tmin tmax [level]`. Text hits: a `vdag-hits 1` line,
+//! then per ray `miss` or `hit T X Y Z LEVEL FACE INDEX` (`INDEX` is `-` when
+//! there is none). `#` starts a comment; blank lines are ignored.
+//!
+//! Binary rays: `VRAY`, u32 version 1, u64 count, then 40-byte records
+//! (`f32 origin[3]`, `f32 dir[3]`, f32 tmin, f32 tmax, u32 level or `0xFFFFFFFF`,
+//! u32 flags = 0). Binary hits: `VHIT`, u32 version 1, u64 count, then
+//! 32-byte records (u32 flags with bit 0 = hit, f32 t, u32 x, y, z, u8 level,
+//! u8 face, u16 reserved = 0, u64 index or `u64::MAX`). Little-endian.
+//!
+//! Parsers never panic and never allocate from a count they have not checked
+//! against the input's length; errors name the line (text) or byte offset
+//! (binary).
+
+use std::io::{self, Write};
+
+use thiserror::Error;
+
+use crate::layout::MAX_DEPTH;
+
+/// First line of a text ray batch.
+pub const RAYS_TEXT_HEADER: &str = "vdag-rays 1";
+/// First line of a text hit batch.
+pub const HITS_TEXT_HEADER: &str = "vdag-hits 1";
+/// First four bytes of a binary ray batch.
+pub const RAYS_MAGIC: [u8; 4] = *b"VRAY";
+/// First four bytes of a binary hit batch.
+pub const HITS_MAGIC: [u8; 4] = *b"VHIT";
+/// Version of both binary formats.
+pub const BATCH_VERSION: u32 = 1;
+/// Bytes before the first binary record: magic, version, count.
+pub const BINARY_HEADER_SIZE: usize = 16;
+/// Bytes per binary ray record.
+pub const RAY_RECORD_SIZE: usize = 40;
+/// Bytes per binary hit record.
+pub const HIT_RECORD_SIZE: usize = 32;
+/// Binary ray level meaning "the file's full depth".
+pub const LEVEL_FULL_DEPTH: u32 = u32::MAX;
+/// Binary hit index meaning "no attribute index".
+pub const NO_INDEX: u64 = u64::MAX;
+/// Largest entry-face code (0 = started inside, 1..=6 = -X +X -Y +Y -Z +Z).
+pub const MAX_FACE: u8 = 6;
+
+/// A ray segment `origin + t * dir`, `t` in `[tmin, tmax]`, in world space.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ray {
+    /// Origin.
+    pub origin: [f32; 3],
+    /// Direction (not necessarily normalised).
+    pub dir: [f32; 3],
+    /// Start of the segment.
+    pub tmin: f32,
+    /// End of the segment (may be infinite).
+    pub tmax: f32,
+    /// Tracing level 1..=D; `None` = the full depth D.
+    pub level: Option<u8>,
+}
+
+impl Ray {
+    /// A ray over `[0, inf]` at full depth.
+    pub fn new(origin: [f32; 3], dir: [f32; 3]) -> Self {
+        Ray {
+            origin,
+            dir,
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+            level: None,
+        }
+    }
+}
+
+/// The answer to one ray.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Whether an occupied cell was hit; the other fields are meaningless otherwise.
+    pub hit: bool,
+    /// Entry parameter of the ray into the cell.
+    pub t: f32,
+    /// Cell coordinates at `level`.
+    pub voxel: [u32; 3],
+    /// Tracing level 1..=D.
+    pub level: u8,
+    /// Entry face: 0 = started inside, 1..=6 = -X +X -Y +Y -Z +Z.
+    pub face: u8,
+    /// Dense index of the cell's first voxel (attribute kind 1), if any.
+    pub index: Option<u64>,
+}
+
+impl Hit {
+    /// A miss, as the parsers return it.
+    pub const MISS: Hit = Hit {
+        hit: false,
+        t: 0.0,
+        voxel: [0; 3],
+        level: 0,
+        face: 0,
+        index: None,
+    };
+}
+
+/// A malformed batch: where and what.
+#[derive(Clone, Debug, Error, PartialEq, Eq)]
+pub enum BatchError {
+    /// In a text batch, at a 1-based line number.
+    #[error("line {line}: {message}")]
+    Text {
+        /// 1-based line number.
+        line: u64,
+        /// What is wrong.
+        message: String,
+    },
+    /// In a binary batch, at a byte offset.
+    #[error("byte {offset}: {message}")]
+    Binary {
+        /// Byte offset of the offending field.
+        offset: u64,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+fn text_error(line: u64, message: impl Into<String>) -> BatchError {
+    BatchError::Text {
+        line,
+        message: message.into(),
+    }
+}
+
+fn binary_error(offset: usize, message: impl Into<String>) -> BatchError {
+    BatchError::Binary {
+        offset: offset as u64,
+        message: message.into(),
+    }
+}
+
+/// Formats an f32 as the shortest string that parses back to the same value
+/// (plain or scientific notation, whichever is shorter).
+pub fn format_f32(v: f32) -> String {
+    let plain = format!("{v}");
+    let scientific = format!("{v:e}");
+    if scientific.len() < plain.len() {
+        scientific
+    } else {
+        plain
+    }
+}
+
+// ---------------------------------------------------------------- text input
+
+/// The content lines of a text batch: (1-based line number, fields), comments
+/// and blank lines dropped.
+struct TextLines<'a> {
+    lines: NumberedLines<'a>,
+}
+
+/// Lines of a byte slice split at `\n`, numbered from 0.
+type NumberedLines<'a> = std::iter::Enumerate<std::slice::Split<'a, u8, fn(&u8) -> bool>>;
+
+impl<'a> TextLines<'a> {
+    fn new(bytes: &'a [u8]) -> Self {
+        let newline: fn(&u8) -> bool = |&b| b == b'\n';
+        TextLines {
+            lines: bytes.split(newline).enumerate(),
+        }
+    }
+}
+
+impl<'a> Iterator for TextLines<'a> {
+    type Item = Result<(u64, Vec<&'a str>), BatchError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        for (index, raw) in self.lines.by_ref() {
+            let line = index as u64 + 1;
+            let text = match std::str::from_utf8(raw) {
+                Ok(t) => t,
+                Err(_) => return Some(Err(text_error(line, "not UTF-8 text"))),
+            };
+            let content = text.split('#').next().unwrap_or("");
+            let fields: Vec<&str> = content.split_ascii_whitespace().collect();
+            if !fields.is_empty() {
+                return Some(Ok((line, fields)));
+            }
+        }
+        None
+    }
+}
+
+/// Checks the header line of a text batch.
+fn text_header(lines: &mut TextLines<'_>, expected: &str, other: &str) -> Result<(), BatchError> {
+    let (line, fields) = match lines.next() {
+        None => {
+            return Err(text_error(
+                1,
+                format!("empty input: missing the `{expected}` header line"),
+            ));
+        }
+        Some(r) => r?,
+    };
+    let expected_tag = expected.split(' ').next().unwrap_or(expected);
+    let other_tag = other.split(' ').next().unwrap_or(other);
+    if fields[0] == other_tag {
+        return Err(text_error(
+            line,
+            format!("this is a `{other_tag}` batch, expected `{expected_tag}`"),
+        ));
+    }
+    if fields[0] != expected_tag {
+        return Err(text_error(
+            line,
+            format!(
+                "missing the `{expected}` header line (found `{}`)",
+                fields[0]
+            ),
+        ));
+    }
+    if fields.len() != 2 || fields[1] != "1" {
+        return Err(text_error(
+            line,
+            format!(
+                "unsupported `{expected_tag}` version `{}` (this reader reads version 1)",
+                fields[1..].join(" ")
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn parse_f32(line: u64, name: &str, field: &str) -> Result<f32, BatchError> {
+    field
+        .parse::<f32>()
+        .map_err(|_| text_error(line, format!("{name}: `{field}` is not a number")))
+}
+
+fn parse_int<T: std::str::FromStr>(line: u64, name: &str, field: &str) -> Result<T, BatchError> {
+    field
+        .parse::<T>()
+        .map_err(|_| text_error(line, format!("{name}: `{field}` is not a valid integer")))
+}
+
+fn check_level(level: u32) -> Result<u8, String> {
+    if (1..=u32::from(MAX_DEPTH)).contains(&level) {
+        Ok(level as u8)
+    } else {
+        Err(format!("level {level} is outside 1..={MAX_DEPTH}"))
+    }
+}
+
+fn parse_text_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
+    const NAMES: [&str; 8] = ["ox", "oy", "oz", "dx", "dy", "dz", "tmin", "tmax"];
+    let mut lines = TextLines::new(bytes);
+    text_header(&mut lines, RAYS_TEXT_HEADER, HITS_TEXT_HEADER)?;
+    let mut rays = Vec::new();
+    for entry in lines {
+        let (line, fields) = entry?;
+        if fields.len() != 8 && fields.len() != 9 {
+            return Err(text_error(
+                line,
+                format!(
+                    "a ray needs 8 or 9 fields (ox oy oz dx dy dz tmin tmax [level]), found {}",
+                    fields.len()
+                ),
+            ));
+        }
+        let mut values = [0f32; 8];
+        for (i, value) in values.iter_mut().enumerate() {
+            *value = parse_f32(line, NAMES[i], fields[i])?;
+        }
+        let level = match fields.get(8) {
+            None => None,
+            Some(f) => {
+                Some(check_level(parse_int(line, "level", f)?).map_err(|m| text_error(line, m))?)
+            }
+        };
+        rays.push(Ray {
+            origin: [values[0], values[1], values[2]],
+            dir: [values[3], values[4], values[5]],
+            tmin: values[6],
+            tmax: values[7],
+            level,
+        });
+    }
+    Ok(rays)
+}
+
+fn parse_text_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
+    let mut lines = TextLines::new(bytes);
+    text_header(&mut lines, HITS_TEXT_HEADER, RAYS_TEXT_HEADER)?;
+    let mut hits = Vec::new();
+    for entry in lines {
+        let (line, fields) = entry?;
+        match fields[0] {
+            "miss" if fields.len() == 1 => hits.push(Hit::MISS),
+            "miss" => {
+                return Err(text_error(
+                    line,
+                    format!("`miss` takes no fields, found {}", fields.len() - 1),
+                ));
+            }
+            "hit" if fields.len() == 8 => {
+                let t = parse_f32(line, "t", fields[1])?;
+                let x = parse_int(line, "x", fields[2])?;
+                let y = parse_int(line, "y", fields[3])?;
+                let z = parse_int(line, "z", fields[4])?;
+                let level = check_level(parse_int(line, "level", fields[5])?)
+                    .map_err(|m| text_error(line, m))?;
+                let face: u8 = parse_int(line, "face", fields[6])?;
+                if face > MAX_FACE {
+                    return Err(text_error(
+                        line,
+                        format!("face {face} is outside 0..={MAX_FACE}"),
+                    ));
+                }
+                let index = match fields[7] {
+                    "-" => None,
+                    f => {
+                        let i: u64 = parse_int(line, "index", f)?;
+                        if i == NO_INDEX {
+                            return Err(text_error(
+                                line,
+                                "index 18446744073709551615 is reserved (write `-` for none)",
+                            ));
+                        }
+                        Some(i)
+                    }
+                };
+                hits.push(Hit {
+                    hit: true,
+                    t,
+                    voxel: [x, y, z],
+                    level,
+                    face,
+                    index,
+                });
+            }
+            "hit" => {
+                return Err(text_error(
+                    line,
+                    format!(
+                        "a hit needs 7 fields (T X Y Z LEVEL FACE INDEX), found {}",
+                        fields.len() - 1
+                    ),
+                ));
+            }
+            other => {
+                return Err(text_error(
+                    line,
+                    format!("expected `hit` or `miss`, found `{other}`"),
+                ));
+            }
+        }
+    }
+    Ok(hits)
+}
+
+// -------------------------------------------------------------- binary input
+
+fn u32_at(bytes: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"))
+}
+
+fn f32_at(bytes: &[u8], at: usize) -> f32 {
+    f32::from_bits(u32_at(bytes, at))
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
+}
+
+/// Checks a binary header and returns the record count, checked against the
+/// bytes that follow.
+fn binary_header(
+    bytes: &[u8],
+    magic: [u8; 4],
+    record_size: usize,
+    what: &str,
+) -> Result<usize, BatchError> {
+    if bytes.len() < BINARY_HEADER_SIZE {
+        return Err(binary_error(
+            bytes.len(),
+            format!(
+                "truncated header: {} bytes, a binary {what} batch starts with {BINARY_HEADER_SIZE}",
+                bytes.len()
+            ),
+        ));
+    }
+    if bytes[..4] != magic {
+        return Err(binary_error(
+            0,
+            format!("bad magic: not a binary {what} batch"),
+        ));
+    }
+    let version = u32_at(bytes, 4);
+    if version != BATCH_VERSION {
+        return Err(binary_error(
+            4,
+            format!("unsupported version {version} (this reader reads version {BATCH_VERSION})"),
+        ));
+    }
+    let count = u64_at(bytes, 8);
+    let available = (bytes.len() - BINARY_HEADER_SIZE) as u64;
+    let needed = count.checked_mul(record_size as u64);
+    match needed {
+        Some(n) if n == available => Ok(count as usize),
+        Some(n) if n < available => Err(binary_error(
+            BINARY_HEADER_SIZE + n as usize,
+            format!(
+                "{} bytes follow the {count} declared {what} records",
+                available - n
+            ),
+        )),
+        _ => Err(binary_error(
+            8,
+            format!(
+                "truncated: {count} {what} records need {} bytes but {available} follow the header",
+                u128::from(count) * record_size as u128
+            ),
+        )),
+    }
+}
+
+fn parse_binary_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
+    let count = binary_header(bytes, RAYS_MAGIC, RAY_RECORD_SIZE, "ray")?;
+    let mut rays = Vec::with_capacity(count);
+    for (i, record) in bytes[BINARY_HEADER_SIZE..]
+        .chunks_exact(RAY_RECORD_SIZE)
+        .enumerate()
+    {
+        let at = BINARY_HEADER_SIZE + i * RAY_RECORD_SIZE;
+        let f = |k: usize| f32_at(record, 4 * k);
+        let level = match u32_at(record, 32) {
+            LEVEL_FULL_DEPTH => None,
+            l => Some(check_level(l).map_err(|m| binary_error(at + 32, format!("ray {i}: {m}")))?),
+        };
+        let flags = u32_at(record, 36);
+        if flags != 0 {
+            return Err(binary_error(
+                at + 36,
+                format!("ray {i}: reserved flags {flags:#x} are not zero"),
+            ));
+        }
+        rays.push(Ray {
+            origin: [f(0), f(1), f(2)],
+            dir: [f(3), f(4), f(5)],
+            tmin: f(6),
+            tmax: f(7),
+            level,
+        });
+    }
+    Ok(rays)
+}
+
+fn parse_binary_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
+    let count = binary_header(bytes, HITS_MAGIC, HIT_RECORD_SIZE, "hit")?;
+    let mut hits = Vec::with_capacity(count);
+    for (i, record) in bytes[BINARY_HEADER_SIZE..]
+        .chunks_exact(HIT_RECORD_SIZE)
+        .enumerate()
+    {
+        let at = BINARY_HEADER_SIZE + i * HIT_RECORD_SIZE;
+        let flags = u32_at(record, 0);
+        if flags & !1 != 0 {
+            return Err(binary_error(
+                at,
+                format!("hit {i}: reserved flag bits {:#x} are set", flags & !1),
+            ));
+        }
+        let index = u64_at(record, 24);
+        if flags == 0 {
+            if record[..24].iter().any(|&b| b != 0) || index != NO_INDEX {
+                return Err(binary_error(
+                    at,
+                    format!("hit {i}: a miss record must be zero except an index of {NO_INDEX:#x}"),
+                ));
+            }
+            hits.push(Hit::MISS);
+            continue;
+        }
+        let level = check_level(u32::from(record[20]))
+            .map_err(|m| binary_error(at + 20, format!("hit {i}: {m}")))?;
+        let face = record[21];
+        if face > MAX_FACE {
+            return Err(binary_error(
+                at + 21,
+                format!("hit {i}: face {face} is outside 0..={MAX_FACE}"),
+            ));
+        }
+        if record[22..24] != [0, 0] {
+            return Err(binary_error(
+                at + 22,
+                format!("hit {i}: reserved bytes are not zero"),
+            ));
+        }
+        hits.push(Hit {
+            hit: true,
+            t: f32_at(record, 4),
+            voxel: [u32_at(record, 8), u32_at(record, 12), u32_at(record, 16)],
+            level,
+            face,
+            index: (index != NO_INDEX).then_some(index),
+        });
+    }
+    Ok(hits)
+}
+
+// -------------------------------------------------------------- public parse
+
+/// Parses a ray batch, binary when it starts with `VRAY`, else text.
+pub fn parse_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
+    if bytes.starts_with(&RAYS_MAGIC) {
+        parse_binary_rays(bytes)
+    } else if bytes.starts_with(&HITS_MAGIC) {
+        Err(binary_error(0, "this is a binary hit batch, expected rays"))
+    } else {
+        parse_text_rays(bytes)
+    }
+}
+
+/// Parses a hit batch, binary when it starts with `VHIT`, else text.
+pub fn parse_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
+    if bytes.starts_with(&HITS_MAGIC) {
+        parse_binary_hits(bytes)
+    } else if bytes.starts_with(&RAYS_MAGIC) {
+        Err(binary_error(0, "this is a binary ray batch, expected hits"))
+    } else {
+        parse_text_hits(bytes)
+    }
+}
+
+// ------------------------------------------------------------------- output
+
+fn invalid(message: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidInput, message)
+}
+
+fn check_ray(i: usize, ray: &Ray) -> io::Result<()> {
+    if let Some(level) = ray.level {
+        check_level(u32::from(level)).map_err(|m| invalid(format!("ray {i}: {m}")))?;
+    }
+    Ok(())
+}
+
+fn check_hit(i: usize, hit: &Hit) -> io::Result<()> {
+    if !hit.hit {
+        return Ok(());
+    }
+    check_level(u32::from(hit.level)).map_err(|m| invalid(format!("hit {i}: {m}")))?;
+    if hit.face > MAX_FACE {
+        return Err(invalid(format!(
+            "hit {i}: face {} is outside 0..={MAX_FACE}",
+            hit.face
+        )));
+    }
+    if hit.index == Some(NO_INDEX) {
+        return Err(invalid(format!(
+            "hit {i}: index {NO_INDEX} is reserved for none"
+        )));
+    }
+    Ok(())
+}
+
+/// Writes rays as a text batch. Fails (`InvalidInput`) on a level outside 1..=21.
+pub fn write_rays_text<W: Write>(w: &mut W, rays: &[Ray]) -> io::Result<()> {
+    writeln!(w, "{RAYS_TEXT_HEADER}")?;
+    for (i, ray) in rays.iter().enumerate() {
+        check_ray(i, ray)?;
+        let values = [
+            ray.origin[0],
+            ray.origin[1],
+            ray.origin[2],
+            ray.dir[0],
+            ray.dir[1],
+            ray.dir[2],
+            ray.tmin,
+            ray.tmax,
+        ];
+        let mut line = values.map(format_f32).join(" ");
+        if let Some(level) = ray.level {
+            line.push(' ');
+            line.push_str(&level.to_string());
+        }
+        writeln!(w, "{line}")?;
+    }
+    Ok(())
+}
+
+/// Writes rays as a binary batch. Fails (`InvalidInput`) on a level outside 1..=21.
+pub fn write_rays_binary<W: Write>(w: &mut W, rays: &[Ray]) -> io::Result<()> {
+    w.write_all(&RAYS_MAGIC)?;
+    w.write_all(&BATCH_VERSION.to_le_bytes())?;
+    w.write_all(&(rays.len() as u64).to_le_bytes())?;
+    let mut record = [0u8; RAY_RECORD_SIZE];
+    for (i, ray) in rays.iter().enumerate() {
+        check_ray(i, ray)?;
+        let values = [
+            ray.origin[0],
+            ray.origin[1],
+            ray.origin[2],
+            ray.dir[0],
+            ray.dir[1],
+            ray.dir[2],
+            ray.tmin,
+            ray.tmax,
+        ];
+        for (k, v) in values.iter().enumerate() {
+            record[4 * k..4 * k + 4].copy_from_slice(&v.to_bits().to_le_bytes());
+        }
+        let level = ray.level.map_or(LEVEL_FULL_DEPTH, u32::from);
+        record[32..36].copy_from_slice(&level.to_le_bytes());
+        record[36..40].copy_from_slice(&0u32.to_le_bytes());
+        w.write_all(&record)?;
+    }
+    Ok(())
+}
+
+/// Writes hits as a text batch (a `Hit` with `hit == false` is written as
+/// `miss`). Fails (`InvalidInput`) on a level outside 1..=21, a face over 6 or
+/// an index of `u64::MAX`.
+pub fn write_hits_text<W: Write>(w: &mut W, hits: &[Hit]) -> io::Result<()> {
+    writeln!(w, "{HITS_TEXT_HEADER}")?;
+    for (i, hit) in hits.iter().enumerate() {
+        check_hit(i, hit)?;
+        if !hit.hit {
+            writeln!(w, "miss")?;
+            continue;
+        }
+        let index = hit.index.map_or_else(|| "-".to_string(), |i| i.to_string());
+        writeln!(
+            w,
+            "hit {} {} {} {} {} {} {index}",
+            format_f32(hit.t),
+            hit.voxel[0],
+            hit.voxel[1],
+            hit.voxel[2],
+            hit.level,
+            hit.face
+        )?;
+    }
+    Ok(())
+}
+
+/// Writes hits as a binary batch (a `Hit` with `hit == false` is written as
+/// the canonical miss record). Fails like [`write_hits_text`].
+pub fn write_hits_binary<W: Write>(w: &mut W, hits: &[Hit]) -> io::Result<()> {
+    w.write_all(&HITS_MAGIC)?;
+    w.write_all(&BATCH_VERSION.to_le_bytes())?;
+    w.write_all(&(hits.len() as u64).to_le_bytes())?;
+    for (i, hit) in hits.iter().enumerate() {
+        check_hit(i, hit)?;
+        let mut record = [0u8; HIT_RECORD_SIZE];
+        if hit.hit {
+            record[0..4].copy_from_slice(&1u32.to_le_bytes());
+            record[4..8].copy_from_slice(&hit.t.to_bits().to_le_bytes());
+            for k in 0..3 {
+                record[8 + 4 * k..12 + 4 * k].copy_from_slice(&hit.voxel[k].to_le_bytes());
+            }
+            record[20] = hit.level;
+            record[21] = hit.face;
+        }
+        let index = if hit.hit {
+            hit.index.unwrap_or(NO_INDEX)
+        } else {
+            NO_INDEX
+        };
+        record[24..32].copy_from_slice(&index.to_le_bytes());
+        w.write_all(&record)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shortest_float_formatting_round_trips() {
+        for v in [
+            0.0f32,
+            -0.0,
+            1.0,
+            0.1,
+            1e30,
+            -3.5e-20,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+            1e-45,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+        ] {
+            let s = format_f32(v);
+            assert_eq!(
+                s.parse::<f32>().unwrap().to_bits(),
+                v.to_bits(),
+                "{v} -> {s}"
+            );
+        }
+        assert_eq!(format_f32(1e30), "1e30");
+        assert_eq!(format_f32(0.5), "0.5");
+        assert_eq!(format_f32(f32::INFINITY), "inf");
+    }
+
+    #[test]
+    fn text_comments_and_blank_lines() {
+        let text = b"# rays\n\nvdag-rays 1 # header\n0 0 0 1 0 0 0 inf\r\n  # nothing\n1 2 3 0 0 -1 -inf inf 4\n";
+        let rays = parse_rays(text).unwrap();
+        assert_eq!(rays.len(), 2);
+        assert_eq!(rays[0].tmax, f32::INFINITY);
+        assert_eq!(rays[1].tmin, f32::NEG_INFINITY);
+        assert_eq!(rays[1].level, Some(4));
+    }
+}

@@ -21,10 +21,11 @@ pub mod layout;
 pub mod mmap;
 pub mod morton;
 pub mod reader;
+pub mod stats;
 pub mod transport;
 pub mod validate;
 
-// pub use builder::DagBuilder;
+pub use builder::DagBuilder;
 pub use error::{ErrorCode, FormatError};
 pub use layout::{AttributeKind, SectionKind};
 pub use reader::{Dag, Header, LeafMask, LevelSection, Node, NodeRef};

@@ -14,6 +14,7 @@ use crate::layout::{
     SECTION_ALIGN, SECTION_ENTRY_SIZE, SectionKind,
 };
 use crate::morton;
+use std::ops::ControlFlow;
 
 /// The decoded file header.
 #[derive(Clone, Debug, PartialEq)]
@@ -231,20 +232,25 @@ pub fn decode_header(raw: &RawHeader) -> Result<Header, FormatError> {
             format!("attribute kind {} is not in the registry", raw.attribute_kind),
         )
     })?;
-    Ok(Header {
+    Ok(decode_header_fields(raw, kind))
+}
+
+/// Decodes the header fields, taking the attribute kind from the caller.
+fn decode_header_fields(raw: &RawHeader, attribute_kind: AttributeKind) -> Header {
+    Header {
         version_major: u16::from_le(raw.version_major),
         version_minor: u16::from_le(raw.version_minor),
         required_features: u32::from_le(raw.required_features),
         optional_features: u32::from_le(raw.optional_features),
         depth: raw.depth,
-        attribute_kind: kind,
+        attribute_kind,
         section_count: u16::from_le(raw.section_count),
         root_min: raw.root_min.map(|b| f64::from_bits(u64::from_le(b))),
         root_size: f64::from_bits(u64::from_le(raw.root_size)),
         file_size: u64::from_le(raw.file_size),
         voxel_count: u64::from_le(raw.voxel_count),
         header_crc: u32::from_le(raw.header_crc),
-    })
+    }
 }
 
 /// Decodes one section table entry without judging it.
@@ -258,7 +264,12 @@ pub fn decode_section_entry(index: u16, raw: &RawSectionEntry) -> Result<Section
             format!("section {index} has unknown required kind {raw_kind:#x}"),
         )
     })?;
-    Ok(SectionEntry {
+    Ok(decode_section_fields(index, raw, kind))
+}
+
+/// Decodes one section table entry, taking the kind from the caller.
+fn decode_section_fields(index: u16, raw: &RawSectionEntry, kind: SectionKind) -> SectionEntry {
+    SectionEntry {
         index,
         kind,
         level: raw.level,
@@ -267,7 +278,7 @@ pub fn decode_section_entry(index: u16, raw: &RawSectionEntry) -> Result<Section
         length: u64::from_le(raw.length),
         item_count: u64::from_le(raw.item_count),
         crc: u32::from_le(raw.crc),
-    })
+    }
 }
 
 /// The structure of a file as far as the header and section table tell it.
@@ -275,38 +286,103 @@ pub fn decode_section_entry(index: u16, raw: &RawSectionEntry) -> Result<Section
 pub(crate) struct Layout {
     pub header: Header,
     pub sections: Vec<SectionEntry>,
+    /// Whether the header's attribute kind is in the registry. Always true in a
+    /// layout [`parse_layout`] returns; when false, `header.attribute_kind` is a
+    /// placeholder ([`AttributeKind::None`]).
+    pub attribute_kind_known: bool,
+    /// Per section: whether its bytes can be interpreted as its kind says: it
+    /// lies inside the file, its kind is known, it is in its place among the
+    /// level sections and (node levels) its pointer width is 1 to 4. Always all
+    /// true in a layout [`parse_layout`] returns. An entry with an unknown
+    /// required kind appears as [`SectionKind::UnknownOptional`] and is not usable.
+    pub usable: Vec<bool>,
 }
 
-/// Parses and checks the header and section table.
+/// How much [`check_layout`] looks at.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LayoutChecks {
+    /// Also check what a lenient reader can live with: reserved fields, the
+    /// header checksum and the padding between sections. Costs O(header +
+    /// table + padding), never O(file).
+    pub thorough: bool,
+    /// Files longer than this are rejected ([`ErrorCode::FileTooLarge`]).
+    pub max_file_size: u64,
+}
+
+/// Parses and checks the header and section table, stopping at the first
+/// problem: what [`Dag::open`] needs.
 ///
-/// Fatal problems (those that make the file impossible to interpret safely)
-/// are returned as `Err`; problems that a lenient reader can live with
-/// (reserved fields, checksums, padding, non-minimal pointer widths) are left
-/// to the validator and not looked at here.
+/// Problems that a lenient reader can live with (reserved fields, checksums,
+/// padding, non-minimal pointer widths) are left to the validator and not
+/// looked at here.
 pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
+    let mut first = None;
+    let checks = LayoutChecks { thorough: false, max_file_size: MAX_FILE_SIZE };
+    let layout = check_layout(bytes, checks, &mut |e| {
+        first = Some(e);
+        ControlFlow::Break(())
+    });
+    match (layout, first) {
+        (Some(layout), None) => Ok(layout),
+        (_, Some(e)) => Err(e),
+        (None, None) => unreachable!("check_layout stops only after reporting a problem"),
+    }
+}
+
+/// Checks the header and section table, handing every problem found to
+/// `sink`; the reader ([`parse_layout`]) and the validator share it.
+///
+/// Returns `None` when it stopped early: because `sink` answered
+/// [`ControlFlow::Break`], or because a problem leaves nothing further to
+/// interpret (file shorter than the header, bad magic, other major version,
+/// depth out of range, a section count out of range or a table past the end of
+/// the file; the header checksum is still checked first where the table lies
+/// inside the file). Otherwise every section entry has been checked and the
+/// returned layout says which sections are usable.
+pub(crate) fn check_layout(
+    bytes: &[u8],
+    checks: LayoutChecks,
+    sink: &mut dyn FnMut(FormatError) -> ControlFlow<()>,
+) -> Option<Layout> {
+    macro_rules! report {
+        ($e:expr) => {
+            if sink($e).is_break() {
+                return None;
+            }
+        };
+    }
     let len = bytes.len() as u64;
     if bytes.len() < HEADER_SIZE {
-        return Err(FormatError::new(
+        let _ = sink(FormatError::new(
             ErrorCode::TruncatedHeader,
             len,
             format!("file is {len} bytes, shorter than the {HEADER_SIZE}-byte header"),
         ));
+        return None;
     }
     if bytes[..8] != MAGIC {
-        return Err(FormatError::new(ErrorCode::BadMagic, 0, "not a .vdag file (bad magic)"));
+        let _ = sink(FormatError::new(ErrorCode::BadMagic, 0, "not a .vdag file (bad magic)"));
+        return None;
     }
     let raw: RawHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_SIZE]);
     let major = u16::from_le(raw.version_major);
     if major != layout::VERSION_MAJOR {
-        return Err(FormatError::new(
+        let _ = sink(FormatError::new(
             ErrorCode::UnsupportedVersion,
             8,
             format!("major version {major} is not supported (this reader reads version 1)"),
         ));
+        return None;
     }
-    let header = decode_header(&raw)?;
+    let (header, attribute_kind_known) = match decode_header(&raw) {
+        Ok(header) => (header, true),
+        Err(e) => {
+            report!(e);
+            (decode_header_fields(&raw, AttributeKind::None), false)
+        }
+    };
     if header.required_features & !layout::KNOWN_REQUIRED_FEATURES != 0 {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::UnknownRequiredFeature,
             16,
             format!("unknown required feature bits {:#x}", header.required_features),
@@ -314,14 +390,15 @@ pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
     }
     let header_size = u32::from_le(raw.header_size);
     if header_size as usize != HEADER_SIZE {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::BadHeaderSize,
             12,
             format!("header size is {header_size}, expected {HEADER_SIZE}"),
         ));
     }
-    if !(MIN_DEPTH..=MAX_DEPTH).contains(&header.depth) {
-        return Err(FormatError::new(
+    let depth_ok = (MIN_DEPTH..=MAX_DEPTH).contains(&header.depth);
+    if !depth_ok {
+        report!(FormatError::new(
             ErrorCode::DepthOutOfRange,
             24,
             format!("depth {} is outside {MIN_DEPTH}..={MAX_DEPTH}", header.depth),
@@ -331,7 +408,7 @@ pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
         || !header.root_size.is_finite()
         || header.root_size <= 0.0
     {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::BadRootCube,
             32,
             format!(
@@ -340,24 +417,38 @@ pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
             ),
         ));
     }
-    if len > MAX_FILE_SIZE {
-        return Err(FormatError::new(
+    if checks.thorough {
+        if raw.reserved0 != 0 {
+            report!(FormatError::new(ErrorCode::NonzeroReserved, 28, "header reserved field at byte 28 is not zero"));
+        }
+        if let Some(i) = raw.reserved1.iter().position(|&b| b != 0) {
+            let at = std::mem::offset_of!(RawHeader, reserved1) + i;
+            report!(FormatError::new(
+                ErrorCode::NonzeroReserved,
+                at as u64,
+                format!("header reserved byte {at} is not zero"),
+            ));
+        }
+    }
+    if len > checks.max_file_size {
+        report!(FormatError::new(
             ErrorCode::FileTooLarge,
             0,
-            format!("file is {len} bytes, over the {MAX_FILE_SIZE}-byte limit"),
+            format!("file is {len} bytes, over the {}-byte limit", checks.max_file_size),
         ));
     }
     if header.file_size != len {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::FileSizeMismatch,
             64,
             format!("header says {} bytes but the file has {len}", header.file_size),
         ));
     }
-    let level_sections = u16::from(header.depth) - 1;
     let count = header.section_count;
-    if count < level_sections || count > MAX_SECTIONS {
-        return Err(FormatError::new(
+    let level_sections = u16::from(header.depth).saturating_sub(1);
+    let count_ok = count <= MAX_SECTIONS && (!depth_ok || count >= level_sections);
+    if !count_ok {
+        report!(FormatError::new(
             ErrorCode::BadSectionTable,
             26,
             format!(
@@ -368,38 +459,122 @@ pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
     }
     let table_end = HEADER_SIZE + usize::from(count) * SECTION_ENTRY_SIZE;
     if table_end > bytes.len() {
-        return Err(FormatError::new(
+        let _ = sink(FormatError::new(
             ErrorCode::BadSectionTable,
             HEADER_SIZE as u64,
             format!("the section table of {count} entries runs past the end of the file"),
         ));
+        return None;
     }
+    if checks.thorough {
+        let head: &[u8; HEADER_SIZE] = bytes[..HEADER_SIZE].try_into().expect("length checked above");
+        let computed = layout::header_checksum(head, &bytes[HEADER_SIZE..table_end]);
+        if computed != header.header_crc {
+            report!(FormatError::new(
+                ErrorCode::HeaderChecksum,
+                layout::HEADER_CRC_OFFSET as u64,
+                format!(
+                    "header checksum is {:#010x}, the header and section table give {computed:#010x}",
+                    header.header_crc
+                ),
+            ));
+        }
+    }
+    if !depth_ok || !count_ok {
+        return None;
+    }
+    let attribute_kind = attribute_kind_known.then_some(header.attribute_kind);
     let mut sections = Vec::with_capacity(usize::from(count));
+    let mut usable = Vec::with_capacity(usize::from(count));
     let mut previous_end = table_end as u64;
+    let mut seen_colors = false;
     for index in 0..count {
         let at = HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE;
         let raw: RawSectionEntry = bytemuck::pod_read_unaligned(&bytes[at..at + SECTION_ENTRY_SIZE]);
-        let entry = decode_section_entry(index, &raw)?;
-        check_section_entry(&header, &entry, len, previous_end)?;
-        previous_end = entry.offset + entry.length;
+        let (entry, kind_known) = match decode_section_entry(index, &raw) {
+            Ok(entry) => (entry, true),
+            Err(e) => {
+                report!(e);
+                let kind = SectionKind::UnknownOptional(u32::from_le(raw.kind));
+                (decode_section_fields(index, &raw, kind), false)
+            }
+        };
+        if checks.thorough {
+            for (field, value) in [(6, u32::from(u16::from_le(raw.reserved0))), (36, u32::from_le(raw.reserved1))] {
+                if value != 0 {
+                    report!(FormatError::new(
+                        ErrorCode::NonzeroReserved,
+                        (at + field) as u64,
+                        format!("reserved field at byte {field} of section entry {index} is not zero"),
+                    ));
+                }
+            }
+        }
+        let mut ok = kind_known;
+        let place = EntryPlace { bytes, previous_end, attribute_kind, kind_known };
+        ok &= check_section_entry(&header, &entry, &place, checks, sink)?;
+        // (A colour section among the level sections was reported as misplaced.)
+        if entry.kind == SectionKind::VoxelColors && index > u16::from(header.depth) - 2 {
+            if seen_colors {
+                report!(FormatError::new(
+                    ErrorCode::BadColorSection,
+                    entry.entry_offset(),
+                    format!("section {index} is a second colour section"),
+                ));
+            }
+            seen_colors = true;
+        }
+        previous_end = entry.offset.saturating_add(entry.length);
         sections.push(entry);
+        usable.push(ok);
     }
-    Ok(Layout { header, sections })
+    if checks.thorough && previous_end < len {
+        report!(FormatError::new(
+            ErrorCode::BadPadding,
+            previous_end,
+            format!("{} bytes follow the end of the last section", len - previous_end),
+        ));
+    }
+    Some(Layout { header, sections, attribute_kind_known, usable })
 }
 
-/// The fatal checks on one section entry: placement and, for level sections,
-/// kind, level, width and size limits.
+/// What [`check_section_entry`] needs to know besides the entry.
+struct EntryPlace<'a> {
+    /// The whole file.
+    bytes: &'a [u8],
+    /// End of the previous section, or of the section table for the first entry.
+    previous_end: u64,
+    /// The header's attribute kind, `None` when it is not in the registry.
+    attribute_kind: Option<AttributeKind>,
+    /// Whether the entry's kind is known (an unknown required kind was reported already).
+    kind_known: bool,
+}
+
+/// The checks on one section entry: placement and, for level sections, kind,
+/// level, width and size limits. Returns `None` when `sink` asked to stop, else
+/// whether the section's bytes can be interpreted as its kind says.
 fn check_section_entry(
     header: &Header,
     entry: &SectionEntry,
-    file_len: u64,
-    previous_end: u64,
-) -> Result<(), FormatError> {
+    place: &EntryPlace<'_>,
+    checks: LayoutChecks,
+    sink: &mut dyn FnMut(FormatError) -> ControlFlow<()>,
+) -> Option<bool> {
+    macro_rules! report {
+        ($e:expr) => {
+            if sink($e).is_break() {
+                return None;
+            }
+        };
+    }
     let at = entry.entry_offset();
     let index = entry.index;
-    let end = entry.offset.checked_add(entry.length).filter(|&e| e <= file_len);
-    let Some(_end) = end else {
-        return Err(FormatError::new(
+    let file_len = place.bytes.len() as u64;
+    let previous_end = place.previous_end;
+    let mut usable = true;
+    let in_bounds = entry.offset.checked_add(entry.length).is_some_and(|e| e <= file_len);
+    if !in_bounds {
+        report!(FormatError::new(
             ErrorCode::SectionOutOfBounds,
             at + 8,
             format!(
@@ -407,16 +582,18 @@ fn check_section_entry(
                 entry.offset, entry.length
             ),
         ));
-    };
-    if entry.offset % SECTION_ALIGN != 0 {
-        return Err(FormatError::new(
+        usable = false;
+    }
+    let aligned = entry.offset.is_multiple_of(SECTION_ALIGN);
+    if !aligned {
+        report!(FormatError::new(
             ErrorCode::SectionMisaligned,
             at + 8,
             format!("section {index} starts at {}, not a multiple of {SECTION_ALIGN}", entry.offset),
         ));
     }
     if entry.offset < previous_end {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::SectionOverlap,
             at + 8,
             format!(
@@ -424,13 +601,39 @@ fn check_section_entry(
                 entry.offset
             ),
         ));
+    } else if checks.thorough && in_bounds {
+        // (The placement of a section outside the file is reported once, as E020.)
+        let expected = layout::align_section(previous_end);
+        if aligned && entry.offset != expected {
+            report!(FormatError::new(
+                ErrorCode::BadPadding,
+                at + 8,
+                format!(
+                    "section {index} starts at {}; minimal padding puts it at {expected}",
+                    entry.offset
+                ),
+            ));
+        }
+        // Empty when the previous section already ran past the end of the file.
+        let gap = place.bytes.get(previous_end as usize..entry.offset.min(file_len) as usize).unwrap_or(&[]);
+        if let Some(i) = gap.iter().position(|&b| b != 0) {
+            let byte = previous_end + i as u64;
+            report!(FormatError::new(
+                ErrorCode::BadPadding,
+                byte,
+                format!("padding byte {byte} before section {index} is not zero"),
+            ));
+        }
     }
     let leaf_level = header.depth - 2;
-    if u16::from(index) <= u16::from(leaf_level) {
+    if index <= u16::from(leaf_level) {
         let level = index as u8;
         let expected = if level == leaf_level { SectionKind::LeafLevel } else { SectionKind::NodeLevel };
-        if entry.kind != expected || entry.level != level {
-            return Err(FormatError::new(
+        if !place.kind_known {
+            usable = false;
+        } else if entry.kind != expected || entry.level != level {
+            // A misplaced section is reported once, not checked as what it claims to be.
+            report!(FormatError::new(
                 ErrorCode::BadLevelSections,
                 at,
                 format!(
@@ -441,35 +644,44 @@ fn check_section_entry(
                 ),
             )
             .at_level(level));
+            return Some(false);
         }
     } else if matches!(entry.kind, SectionKind::NodeLevel | SectionKind::LeafLevel) {
-        return Err(FormatError::new(
+        report!(FormatError::new(
             ErrorCode::BadLevelSections,
             at,
             format!("section {index}: extra level section after the {} level sections", leaf_level + 1),
         ));
+        return Some(false);
     }
     match entry.kind {
         SectionKind::NodeLevel => {
             if !(1..=4).contains(&entry.pointer_width) {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
                     format!("level {} has pointer width {}, not 1 to 4", entry.level, entry.pointer_width),
                 )
                 .at_level(entry.level));
+                usable = false;
             }
-            if entry.length > MAX_NODE_LEVEL_BYTES || entry.item_count > entry.length / 8 {
-                let code = if entry.length > MAX_NODE_LEVEL_BYTES {
-                    ErrorCode::LevelTooLarge
-                } else {
-                    ErrorCode::ItemCountMismatch
-                };
-                return Err(FormatError::new(
-                    code,
+            if entry.length > MAX_NODE_LEVEL_BYTES {
+                report!(FormatError::new(
+                    ErrorCode::LevelTooLarge,
                     at + 16,
                     format!(
-                        "level {} declares {} nodes in {} bytes (each node takes at least 8, a level at most {MAX_NODE_LEVEL_BYTES})",
+                        "level {} has {} bytes, over the limit of {MAX_NODE_LEVEL_BYTES}",
+                        entry.level, entry.length
+                    ),
+                )
+                .at_level(entry.level));
+            } else if !checks.thorough && entry.item_count > entry.length / 8 {
+                // The validator counts the records instead.
+                report!(FormatError::new(
+                    ErrorCode::ItemCountMismatch,
+                    at + 24,
+                    format!(
+                        "level {} declares {} nodes in {} bytes (each node takes at least 8)",
                         entry.level, entry.item_count, entry.length
                     ),
                 )
@@ -478,7 +690,7 @@ fn check_section_entry(
         }
         SectionKind::LeafLevel => {
             if entry.pointer_width != 0 {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
                     format!("the leaf level has pointer width {}, must be 0", entry.pointer_width),
@@ -486,7 +698,7 @@ fn check_section_entry(
                 .at_level(entry.level));
             }
             if entry.item_count > MAX_LEAF_COUNT {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::LevelTooLarge,
                     at + 24,
                     format!("{} leaves exceed the limit of {MAX_LEAF_COUNT}", entry.item_count),
@@ -494,27 +706,33 @@ fn check_section_entry(
                 .at_level(entry.level));
             }
             if entry.item_count.checked_mul(8) != Some(entry.length) {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::ItemCountMismatch,
                     at + 24,
-                    format!("{} leaves need {} bytes, section has {}", entry.item_count, entry.item_count.saturating_mul(8), entry.length),
+                    format!(
+                        "{} leaves need {} bytes, section has {}",
+                        entry.item_count,
+                        entry.item_count.saturating_mul(8),
+                        entry.length
+                    ),
                 )
                 .at_level(entry.level));
             }
         }
         SectionKind::VoxelColors => {
             if entry.pointer_width != 0 {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
                     format!("the colour section has pointer width {}, must be 0", entry.pointer_width),
                 ));
             }
-            if header.attribute_kind != AttributeKind::VoxelCount
+            let kind_wrong = place.attribute_kind.is_some_and(|k| k != AttributeKind::VoxelCount);
+            if kind_wrong
                 || entry.item_count != header.voxel_count
                 || entry.item_count.checked_mul(4) != Some(entry.length)
             {
-                return Err(FormatError::new(
+                report!(FormatError::new(
                     ErrorCode::BadColorSection,
                     at,
                     format!(
@@ -522,11 +740,17 @@ fn check_section_entry(
                         entry.item_count, entry.length, header.voxel_count
                     ),
                 ));
+            } else if checks.thorough && entry.level != 0 {
+                report!(FormatError::new(
+                    ErrorCode::BadColorSection,
+                    at + 4,
+                    format!("colour section has level {}, must be 0", entry.level),
+                ));
             }
         }
         SectionKind::UnknownOptional(_) => {}
     }
-    Ok(())
+    Some(usable)
 }
 
 impl<'a> Dag<'a> {
@@ -536,7 +760,7 @@ impl<'a> Dag<'a> {
     /// Checksums, padding and the node graph are checked by
     /// [`crate::validate::validate`], and every later access is bounds-checked.
     pub fn open(bytes: &'a [u8]) -> Result<Self, FormatError> {
-        let Layout { header, sections } = parse_layout(bytes)?;
+        let Layout { header, sections, .. } = parse_layout(bytes)?;
         let level_count = usize::from(header.depth) - 1;
         let mut levels = Vec::with_capacity(level_count);
         let mut colors = None;
@@ -551,16 +775,8 @@ impl<'a> Dag<'a> {
                     pointer_width: entry.pointer_width,
                     is_leaf: entry.kind == SectionKind::LeafLevel,
                 }),
-                SectionKind::VoxelColors => {
-                    if colors.is_some() {
-                        return Err(FormatError::new(
-                            ErrorCode::BadColorSection,
-                            entry.entry_offset(),
-                            "more than one colour section",
-                        ));
-                    }
-                    colors = Some(&bytes[range]);
-                }
+                // parse_layout rejects a second colour section.
+                SectionKind::VoxelColors => colors = Some(&bytes[range]),
                 SectionKind::UnknownOptional(_) => {}
             }
         }

@@ -1,1 +1,1015 @@
-//! TODO
+//! The validator: checks every rule of spec/VDAG.md § Validation rules and
+//! reports every violation it finds, not only the first.
+//!
+//! [`validate`] returns the list of [`FormatError`]s (empty when the file is
+//! valid), sorted by byte offset; [`validate_with`] takes limits and says
+//! whether the list was cut short.
+//!
+//! The work is linear in the file size: one pass of CRC-32C over every
+//! section (on a second thread for large files, see
+//! [`ValidateOptions::threads`]), one sequential pass over each level's
+//! records, and per level two bitmaps (record starts and referenced records,
+//! 1/16 of the level's size) plus one subtree voxel count per two words of the
+//! level (16, 32 or 64 bits as the level's depth needs: at most the level's
+//! size). Only two levels' indexes are held at a time; nothing is allocated
+//! per node.
+//!
+//! # What is checked, in order
+//!
+//! 1. The header and the section table (shared with the reader:
+//!    `reader::check_layout`): E001-E013, E020-E026, E030, the leaf-level E043,
+//!    E063, the reserved fields (E009), the header checksum (E011) and the
+//!    padding between the table, the sections and the end of the file (E023).
+//! 2. Section checksums (E028), minimal pointer widths (E027) and the root
+//!    level's node count (E040).
+//! 3. The levels, leaf level first: empty leaf masks (E048); then each node
+//!    level upwards: record framing (E041, E042, E044, E043 against the
+//!    records found), pointers (E045, E046), attributes (E060, E061, from the
+//!    exact subtree voxel counts computed on the way up) and, once a level's
+//!    parent has been walked, records nobody points to (E047).
+//! 4. The header's voxel count against the root's subtree count (E062).
+//!
+//! # After a fatal error
+//!
+//! - A file shorter than the header (E001), bad magic (E002) or another major
+//!   version (E003) stops validation at once: nothing else can be interpreted.
+//! - A depth out of range (E006), a section count out of range or a section
+//!   table past the end of the file (E012) stop validation after the rest of
+//!   the header has been checked (and the header checksum, when the table lies
+//!   inside the file): without them the levels cannot be located.
+//! - Every other header problem is reported and validation goes on: an
+//!   unknown required feature (E004) or header size (E005) is checked as
+//!   version 1.0 with the table at byte 128, an unknown attribute kind (E007)
+//!   skips the attribute checks (E060, E061), a wrong file size (E010) or too
+//!   large a file (E013) goes on with the bytes actually given.
+//! - A section that lies outside the file (E020) is neither checksummed nor
+//!   walked. A level section that cannot be interpreted (outside the file, an
+//!   unknown required kind E025, not the right kind or level for its place
+//!   E024, a node-level pointer width outside 1..=4 E026) is not walked:
+//!   pointers into it are not checked (E045, E046, E027), its records are not
+//!   checked for references (E047), and the voxel counts of the levels above
+//!   it, hence E061 and E062, are not checked.
+//! - A pointer that is out of range or not at a record start makes the
+//!   subtree count of its node unknown: E061 is not checked for that node and
+//!   its ancestors, nor E062, so one broken pointer is one finding.
+//! - A record that runs past the end of its level (E042) ends the walk of that
+//!   level; its record count is then not compared with the item count (E043).
+//! - After [`ValidateOptions::max_errors`] findings validation stops and
+//!   [`ValidationReport::truncated`] is set.
+//!
+//! Not checked: the contents of sections of unknown optional kinds (nor their
+//! level, pointer width and item count fields, which a later minor version may
+//! give a meaning), the colour values, and the unknown optional feature bits
+//! and minor version (readers ignore them).
+
+use crate::error::{ErrorCode, FormatError};
+use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE};
+use crate::reader::{self, LayoutChecks, SectionEntry};
+use std::ops::ControlFlow;
+
+/// Limits for [`validate_with`].
+#[derive(Clone, Debug)]
+pub struct ValidateOptions {
+    /// Stop after this many findings (default 100 000), so that validating a
+    /// large file of garbage does not build an enormous list.
+    pub max_errors: usize,
+    /// Files longer than this are reported as
+    /// [`ErrorCode::FileTooLarge`] (default [`MAX_FILE_SIZE`]).
+    pub max_file_size: u64,
+    /// Whether large files may be checksummed on a second thread while the
+    /// levels are walked on the calling one (default true).
+    pub threads: bool,
+}
+
+impl Default for ValidateOptions {
+    fn default() -> Self {
+        ValidateOptions {
+            max_errors: 100_000,
+            max_file_size: MAX_FILE_SIZE,
+            threads: true,
+        }
+    }
+}
+
+/// What [`validate_with`] found.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ValidationReport {
+    /// Every violation found, sorted by byte offset (stable: at one offset,
+    /// in the order found).
+    pub errors: Vec<FormatError>,
+    /// Whether validation stopped at [`ValidateOptions::max_errors`]: there
+    /// is at least one more violation than listed.
+    pub truncated: bool,
+}
+
+impl ValidationReport {
+    /// Whether the file is valid (no violation found and none left unlisted).
+    pub fn is_valid(&self) -> bool {
+        self.errors.is_empty() && !self.truncated
+    }
+
+    /// Whether some finding has the given code.
+    pub fn has(&self, code: ErrorCode) -> bool {
+        self.errors.iter().any(|e| e.code == code)
+    }
+}
+
+/// Checks every rule of the format; returns every violation found (empty when
+/// the file is valid), sorted by byte offset. Uses [`ValidateOptions::default`].
+pub fn validate(bytes: &[u8]) -> Vec<FormatError> {
+    validate_with(bytes, &ValidateOptions::default()).errors
+}
+
+/// Checks every rule of the format with the given limits.
+pub fn validate_with(bytes: &[u8], options: &ValidateOptions) -> ValidationReport {
+    let mut findings = Findings {
+        errors: Vec::new(),
+        max: options.max_errors,
+        truncated: false,
+    };
+    // Err(Stop) only means the error limit was reached; the report says so.
+    let _ = check_file(bytes, options, &mut findings);
+    let mut errors = findings.errors;
+    errors.sort_by_key(|e| e.offset);
+    ValidationReport {
+        errors,
+        truncated: findings.truncated,
+    }
+}
+
+/// Validation stopped because the error limit was reached.
+#[derive(Debug)]
+struct Stop;
+
+/// The findings so far.
+struct Findings {
+    errors: Vec<FormatError>,
+    max: usize,
+    truncated: bool,
+}
+
+impl Findings {
+    #[cold]
+    #[inline(never)]
+    fn report(&mut self, e: FormatError) -> Result<(), Stop> {
+        if self.errors.len() >= self.max {
+            self.truncated = true;
+            return Err(Stop);
+        }
+        self.errors.push(e);
+        Ok(())
+    }
+}
+
+/// A subtree voxel count that cannot be known (a pointer of the subtree is
+/// broken or leads into a level that was not walked). Saturating additions
+/// keep it unknown.
+const UNKNOWN: u64 = u64::MAX;
+
+/// What the attribute bits of the nodes must hold.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum AttributeRule {
+    /// Kind 0: zero.
+    Zero,
+    /// Kind 1: the subtree's voxel count, saturated.
+    VoxelCount,
+    /// Unknown kind (reported already): not checked.
+    Unchecked,
+}
+
+fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Result<(), Stop> {
+    let checks = LayoutChecks {
+        thorough: true,
+        max_file_size: options.max_file_size,
+    };
+    let mut stopped = false;
+    let layout = reader::check_layout(bytes, checks, &mut |e| match f.report(e) {
+        Ok(()) => ControlFlow::Continue(()),
+        Err(Stop) => {
+            stopped = true;
+            ControlFlow::Break(())
+        }
+    });
+    if stopped {
+        return Err(Stop);
+    }
+    let Some(layout) = layout else {
+        // A fatal problem, reported already.
+        return Ok(());
+    };
+    let sections = &layout.sections;
+
+    // Section checksums: on a second thread while the levels are walked,
+    // when there is enough to gain.
+    let checksummed: Vec<(&SectionEntry, &[u8])> = sections
+        .iter()
+        .filter_map(|e| section_bytes(bytes, e).map(|data| (e, data)))
+        .collect();
+    let checksum_bytes: usize = checksummed.iter().map(|(_, data)| data.len()).sum();
+    let compute = || {
+        checksummed
+            .iter()
+            .map(|(_, data)| crc32c::crc32c(data))
+            .collect::<Vec<u32>>()
+    };
+    std::thread::scope(|scope| {
+        let worker = (options.threads && checksum_bytes >= PARALLEL_CHECKSUM_BYTES)
+            .then(|| {
+                std::thread::Builder::new()
+                    .name("vdag-checksums".into())
+                    .spawn_scoped(scope, compute)
+                    .ok()
+            })
+            .flatten();
+        let walked = check_levels(&layout, bytes, f);
+        let computed = match worker {
+            Some(worker) => worker
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic)),
+            None => compute(),
+        };
+        walked?;
+        for ((entry, _), computed) in checksummed.iter().zip(computed) {
+            if computed != entry.crc {
+                f.report(FormatError::new(
+                    ErrorCode::SectionChecksum,
+                    entry.entry_offset() + 32,
+                    format!(
+                        "section {} checksum is {:#010x}, its {} bytes give {computed:#010x}",
+                        entry.index, entry.crc, entry.length
+                    ),
+                ))?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// Sections totalling at least this many bytes are checksummed on a second
+/// thread (below it, starting the thread costs more than it saves).
+const PARALLEL_CHECKSUM_BYTES: usize = 32 << 20;
+
+/// Everything after the section table except the checksums: pointer widths,
+/// the root level, the walk of the levels and the header's voxel count.
+fn check_levels(layout: &reader::Layout, bytes: &[u8], f: &mut Findings) -> Result<(), Stop> {
+    let header = &layout.header;
+    let sections = &layout.sections;
+    let leaf_level = header.depth - 2;
+    let level_count = usize::from(leaf_level) + 1;
+
+    // The level sections that can be interpreted.
+    let levels: Vec<Option<LevelView<'_>>> = (0..level_count)
+        .map(|i| {
+            let entry = &sections[i];
+            if !layout.usable[i] {
+                return None;
+            }
+            section_bytes(bytes, entry).map(|data| LevelView { entry, bytes: data })
+        })
+        .collect();
+
+    // Minimal pointer widths.
+    for l in 0..usize::from(leaf_level) {
+        let (Some(own), Some(child)) = (&levels[l], &levels[l + 1]) else {
+            continue;
+        };
+        let units = if l + 1 == usize::from(leaf_level) {
+            child.bytes.len() as u64 / 8
+        } else {
+            child.bytes.len() as u64 / 4
+        };
+        if let Some(minimal) = layout::minimal_pointer_width(units)
+            && minimal != own.entry.pointer_width
+        {
+            f.report(
+                FormatError::new(
+                    ErrorCode::PointerWidthNotMinimal,
+                    own.entry.entry_offset() + 5,
+                    format!(
+                        "level {l} has pointer width {}, but {units} {} of level {} need {minimal}",
+                        own.entry.pointer_width,
+                        if l + 1 == usize::from(leaf_level) {
+                            "leaves"
+                        } else {
+                            "words"
+                        },
+                        l + 1
+                    ),
+                )
+                .at_level(l as u8),
+            )?;
+        }
+    }
+
+    // The root level: one node, or none with every level empty.
+    let root_entry = &sections[0];
+    let all_empty = sections[..level_count]
+        .iter()
+        .all(|e| e.item_count == 0 && e.length == 0);
+    if root_entry.item_count > 1 || (root_entry.item_count == 0 && !all_empty) {
+        f.report(
+            FormatError::new(
+                ErrorCode::BadRootLevel,
+                root_entry.entry_offset() + 24,
+                format!(
+                    "the root level holds {} nodes; it must hold 1, or 0 with every level empty",
+                    root_entry.item_count
+                ),
+            )
+            .at_level(0),
+        )?;
+    }
+
+    let attributes = if !layout.attribute_kind_known {
+        AttributeRule::Unchecked
+    } else if header.attribute_kind == AttributeKind::VoxelCount {
+        AttributeRule::VoxelCount
+    } else {
+        AttributeRule::Zero
+    };
+
+    let root_count = walk_levels(f, &levels, attributes)?;
+    if let Some(total) = root_count
+        && total != header.voxel_count
+    {
+        f.report(FormatError::new(
+            ErrorCode::HeaderVoxelCount,
+            72,
+            format!(
+                "the header counts {} voxels, the DAG holds {total}",
+                header.voxel_count
+            ),
+        ))?;
+    }
+    Ok(())
+}
+
+/// Walks the levels bottom-up; returns the root's subtree voxel count when
+/// it can be known. Picks a build of the walk for the CPU it runs on.
+fn walk_levels(
+    f: &mut Findings,
+    levels: &[Option<LevelView<'_>>],
+    attributes: AttributeRule,
+) -> Result<Option<u64>, Stop> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("popcnt") {
+        // SAFETY: the CPU has the POPCNT instruction (checked just above),
+        // the only feature `walk_levels_popcnt` is compiled to use.
+        return unsafe { walk_levels_popcnt(f, levels, attributes) };
+    }
+    walk_levels_inline(f, levels, attributes)
+}
+
+/// [`walk_levels_inline`] compiled with the POPCNT instruction: the walk
+/// counts bits for every pointer (record ranks) and every leaf, and the
+/// baseline x86-64 target emulates `count_ones` with a dozen instructions.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "popcnt")]
+fn walk_levels_popcnt(
+    f: &mut Findings,
+    levels: &[Option<LevelView<'_>>],
+    attributes: AttributeRule,
+) -> Result<Option<u64>, Stop> {
+    walk_levels_inline(f, levels, attributes)
+}
+
+#[inline(always)]
+fn walk_levels_inline(
+    f: &mut Findings,
+    levels: &[Option<LevelView<'_>>],
+    attributes: AttributeRule,
+) -> Result<Option<u64>, Stop> {
+    let leaf_level = levels.len() - 1;
+    let mut below = match &levels[leaf_level] {
+        Some(view) => Below::Leaves(walk_leaf_level(f, view)?),
+        None => Below::Unusable,
+    };
+    let mut root_count = match (&below, &levels[0]) {
+        (Below::Leaves(leaves), Some(view)) if leaf_level == 0 => {
+            match (
+                leaves.counts.len() as u64 == view.entry.item_count,
+                leaves.counts.first(),
+            ) {
+                (false, _) => None,
+                (true, None) => Some(0),
+                (true, Some(&c)) => Some(u64::from(c & LEAF_COUNT_MASK)),
+            }
+        }
+        _ => None,
+    };
+    for l in (0..leaf_level).rev() {
+        let Some(view) = &levels[l] else {
+            below = Below::Unusable;
+            continue;
+        };
+        let walked = walk_node_level(f, view, &mut below, attributes, leaf_level - l)?;
+        check_unreferenced(f, &below, &levels[l + 1])?;
+        if l == 0 && walked.complete && walked.records == view.entry.item_count {
+            root_count = match walked.counts.first() {
+                None => Some(0),
+                Some(UNKNOWN) => None,
+                Some(count) => Some(count),
+            };
+        }
+        below = walked.into_below();
+    }
+    Ok(root_count)
+}
+
+/// The bytes of a section, `None` when it lies outside the file.
+fn section_bytes<'a>(bytes: &'a [u8], entry: &SectionEntry) -> Option<&'a [u8]> {
+    let start = usize::try_from(entry.offset).ok()?;
+    let end = start.checked_add(usize::try_from(entry.length).ok()?)?;
+    bytes.get(start..end)
+}
+
+/// A level section that can be interpreted.
+struct LevelView<'a> {
+    entry: &'a SectionEntry,
+    bytes: &'a [u8],
+}
+
+impl LevelView<'_> {
+    fn level(&self) -> u8 {
+        self.entry.level
+    }
+}
+
+/// The level below the one being walked, as its parent's pointers see it.
+enum Below {
+    /// A level that could not be interpreted (reported already).
+    Unusable,
+    /// The leaf level.
+    Leaves(LeafLevel),
+    /// A node level that has been walked, whose counts fit 16 bits.
+    Nodes16(NodeLevel<u16>),
+    /// The same, counts of 32 bits.
+    Nodes32(NodeLevel<u32>),
+    /// The same, counts of 64 bits.
+    Nodes64(NodeLevel<u64>),
+}
+
+/// The leaf level, walked: per leaf one byte, its voxel count (0 to 64) with
+/// [`LEAF_REFERENCED`] set once a pointer addresses it. One byte instead of
+/// the 8-byte mask keeps the pointers' random accesses in cache.
+struct LeafLevel {
+    counts: Vec<u8>,
+}
+
+/// Set in a [`LeafLevel`] count byte when some pointer addresses the leaf.
+const LEAF_REFERENCED: u8 = 0x80;
+/// The voxel count bits of a [`LeafLevel`] count byte.
+const LEAF_COUNT_MASK: u8 = 0x7F;
+
+/// Per 64 words of a node level: which words start a record and which
+/// records some pointer addresses. Kept together so that following a pointer
+/// touches one cache line.
+#[derive(Clone, Copy, Default)]
+#[repr(C, align(16))]
+struct WordBlock {
+    starts: u64,
+    referenced: u64,
+}
+
+/// A node level, walked.
+struct NodeLevel<T> {
+    /// Words of the level (length / 4).
+    words: u64,
+    blocks: Vec<WordBlock>,
+    /// Subtree voxel count of the record starting at word `w`, at index
+    /// `w / 2` (`T::MAX` when it cannot be known). A valid record takes at
+    /// least two words, so no two share an index; indexing by position rather
+    /// than by record number lets a pointer's count be fetched without first
+    /// ranking its record, so the two memory accesses of a pointer overlap.
+    /// (Two records can share an index only after an invalid 4-byte record,
+    /// E041; the index then holds `T::MAX`.) `T` is the narrowest type that
+    /// holds the level's largest possible count, 8^(D - level): following
+    /// pointers into a large level misses the cache, and a smaller array misses
+    /// less.
+    counts: Vec<T>,
+}
+
+/// An unsigned integer type holding subtree voxel counts, `MAX` meaning unknown.
+trait CountSlot: Copy {
+    /// The count ([`UNKNOWN`] for the unknown slot).
+    fn get(self) -> u64;
+    /// Stores `count`; a count the type cannot hold becomes unknown.
+    fn put(count: u64) -> Self;
+}
+
+macro_rules! count_slot {
+    ($($t:ty),*) => {$(
+        impl CountSlot for $t {
+            #[inline(always)]
+            fn get(self) -> u64 {
+                if self == <$t>::MAX { UNKNOWN } else { self as u64 }
+            }
+            #[inline(always)]
+            fn put(count: u64) -> Self {
+                <$t>::try_from(count).unwrap_or(<$t>::MAX)
+            }
+        }
+    )*};
+}
+count_slot!(u16, u32, u64);
+
+/// The counts of the level being walked, in the type its depth calls for.
+enum OwnCounts {
+    U16(Vec<u16>),
+    U32(Vec<u32>),
+    U64(Vec<u64>),
+}
+
+impl OwnCounts {
+    /// Slots for a level of `len` bytes whose nodes cover `8^levels_above_leaves * 64` voxels at most.
+    fn new(len: usize, levels_above_leaves: usize) -> Self {
+        // A node of this level holds at most 8^(D - level) = 2^(3 * (levels_above_leaves + 2)) voxels.
+        let bits = 3 * (levels_above_leaves + 2);
+        let slots = len.div_ceil(8);
+        if bits < 16 {
+            OwnCounts::U16(vec![u16::MAX; slots])
+        } else if bits < 32 {
+            OwnCounts::U32(vec![u32::MAX; slots])
+        } else {
+            OwnCounts::U64(vec![u64::MAX; slots])
+        }
+    }
+
+    #[inline(always)]
+    fn set(&mut self, slot: usize, count: u64) {
+        match self {
+            OwnCounts::U16(v) => v[slot] = u16::put(count),
+            OwnCounts::U32(v) => v[slot] = u32::put(count),
+            OwnCounts::U64(v) => v[slot] = u64::put(count),
+        }
+    }
+
+    fn first(&self) -> Option<u64> {
+        match self {
+            OwnCounts::U16(v) => v.first().map(|c| c.get()),
+            OwnCounts::U32(v) => v.first().map(|c| c.get()),
+            OwnCounts::U64(v) => v.first().map(|c| c.get()),
+        }
+    }
+}
+
+/// What a pointer leads to.
+enum Visit {
+    /// A record whose subtree holds this many voxels (maybe [`UNKNOWN`]).
+    Count(u64),
+    /// Nothing: past the end of the level.
+    OutOfRange,
+    /// The middle of a record.
+    NotAtNode,
+}
+
+/// The level a node level's pointers lead into.
+trait ChildLevel {
+    /// Follows pointer `p`, marking its target referenced.
+    fn visit(&mut self, p: u32) -> Visit;
+    /// Addressable units: words of a node level, leaves of the leaf level.
+    fn units(&self) -> u64;
+    /// "word" or "leaf", for messages.
+    const UNIT: &'static str;
+}
+
+/// Pointers into a level that was not walked lead to unknown counts.
+struct Unchecked;
+
+impl ChildLevel for Unchecked {
+    #[inline(always)]
+    fn visit(&mut self, _p: u32) -> Visit {
+        Visit::Count(UNKNOWN)
+    }
+    fn units(&self) -> u64 {
+        0
+    }
+    const UNIT: &'static str = "unit";
+}
+
+impl ChildLevel for LeafLevel {
+    #[inline(always)]
+    fn visit(&mut self, p: u32) -> Visit {
+        let Some(c) = self.counts.get_mut(p as usize) else {
+            return Visit::OutOfRange;
+        };
+        *c |= LEAF_REFERENCED;
+        Visit::Count(u64::from(*c & LEAF_COUNT_MASK))
+    }
+    fn units(&self) -> u64 {
+        self.counts.len() as u64
+    }
+    const UNIT: &'static str = "leaf";
+}
+
+impl<T: CountSlot> ChildLevel for NodeLevel<T> {
+    #[inline(always)]
+    fn visit(&mut self, p: u32) -> Visit {
+        let w = u64::from(p);
+        if w >= self.words {
+            return Visit::OutOfRange;
+        }
+        // `blocks` and `counts` cover every word, so these lookups succeed.
+        let count = self
+            .counts
+            .get((w >> 1) as usize)
+            .map_or(UNKNOWN, |c| c.get());
+        let Some(block) = self.blocks.get_mut((w >> 6) as usize) else {
+            return Visit::OutOfRange;
+        };
+        let bit = 1u64 << (w & 63);
+        if block.starts & bit == 0 {
+            return Visit::NotAtNode;
+        }
+        block.referenced |= bit;
+        Visit::Count(count)
+    }
+    fn units(&self) -> u64 {
+        self.words
+    }
+    const UNIT: &'static str = "word";
+}
+
+/// Checks the leaf masks (E048) and indexes the leaf level.
+#[inline(always)]
+fn walk_leaf_level(f: &mut Findings, view: &LevelView<'_>) -> Result<LeafLevel, Stop> {
+    let whole = view.bytes.len() / 8 * 8;
+    let masks: &[[u8; 8]] = bytemuck::cast_slice(&view.bytes[..whole]);
+    let counts: Vec<u8> = masks
+        .iter()
+        .map(|m| u64::from_ne_bytes(*m).count_ones() as u8)
+        .collect();
+    // A zero mask is the only one with count 0; look per leaf only where a chunk has one.
+    for (c, chunk) in counts.chunks(256).enumerate() {
+        if chunk.iter().fold(u8::MAX, |acc, &n| acc.min(n)) != 0 {
+            continue;
+        }
+        for (i, _) in chunk.iter().enumerate().filter(|&(_, &n)| n == 0) {
+            let index = (c * 256 + i) as u64;
+            f.report(
+                FormatError::new(
+                    ErrorCode::EmptyLeafMask,
+                    view.entry.offset + index * 8,
+                    "leaf mask is zero (a leaf holds at least one voxel)",
+                )
+                .at_level(view.level())
+                .at_node(index),
+            )?;
+        }
+    }
+    Ok(LeafLevel { counts })
+}
+
+/// The outcome of walking one node level.
+struct WalkedLevel {
+    words: u64,
+    blocks: Vec<WordBlock>,
+    counts: OwnCounts,
+    /// Records found.
+    records: u64,
+    /// Whether the walk reached the end of the section (no truncated record).
+    complete: bool,
+}
+
+impl WalkedLevel {
+    fn into_below(self) -> Below {
+        let WalkedLevel {
+            words,
+            blocks,
+            counts,
+            ..
+        } = self;
+        match counts {
+            OwnCounts::U16(counts) => Below::Nodes16(NodeLevel {
+                words,
+                blocks,
+                counts,
+            }),
+            OwnCounts::U32(counts) => Below::Nodes32(NodeLevel {
+                words,
+                blocks,
+                counts,
+            }),
+            OwnCounts::U64(counts) => Below::Nodes64(NodeLevel {
+                words,
+                blocks,
+                counts,
+            }),
+        }
+    }
+}
+
+/// Walks node level `view`, `levels_above_leaves` levels above the leaf level.
+#[inline(always)]
+fn walk_node_level(
+    f: &mut Findings,
+    view: &LevelView<'_>,
+    below: &mut Below,
+    attributes: AttributeRule,
+    levels_above_leaves: usize,
+) -> Result<WalkedLevel, Stop> {
+    let counts = OwnCounts::new(view.bytes.len(), levels_above_leaves);
+    match below {
+        Below::Unusable => walk_width(f, view, &mut Unchecked, attributes, counts),
+        Below::Leaves(leaves) => walk_width(f, view, leaves, attributes, counts),
+        Below::Nodes16(nodes) => walk_width(f, view, nodes, attributes, counts),
+        Below::Nodes32(nodes) => walk_width(f, view, nodes, attributes, counts),
+        Below::Nodes64(nodes) => walk_width(f, view, nodes, attributes, counts),
+    }
+}
+
+#[inline(always)]
+fn walk_width<C: ChildLevel>(
+    f: &mut Findings,
+    view: &LevelView<'_>,
+    child: &mut C,
+    attributes: AttributeRule,
+    counts: OwnCounts,
+) -> Result<WalkedLevel, Stop> {
+    match view.entry.pointer_width {
+        1 => walk_records::<1, C>(f, view, child, attributes, counts),
+        2 => walk_records::<2, C>(f, view, child, attributes, counts),
+        3 => walk_records::<3, C>(f, view, child, attributes, counts),
+        // A usable node level has width 1 to 4.
+        _ => walk_records::<4, C>(f, view, child, attributes, counts),
+    }
+}
+
+/// Walks the records of a node level with pointer width `W`: framing,
+/// pointers, attributes; indexes the level for its parent.
+#[inline(always)]
+fn walk_records<const W: usize, C: ChildLevel>(
+    f: &mut Findings,
+    view: &LevelView<'_>,
+    child: &mut C,
+    attributes: AttributeRule,
+    mut counts: OwnCounts,
+) -> Result<WalkedLevel, Stop> {
+    let sec = view.bytes;
+    let len = sec.len();
+    let level = view.level();
+    let base = view.entry.offset;
+    let words = len as u64 / 4;
+    let mut blocks = vec![WordBlock::default(); len.div_ceil(4).div_ceil(64)];
+    let mut previous_slot = usize::MAX;
+    let mut pos = 0usize;
+    let mut index = 0u64;
+    let mut complete = true;
+    while pos < len {
+        let Some(head) = sec.get(pos..pos + 4) else {
+            complete = false;
+            f.report(truncated_node(
+                base + pos as u64,
+                level,
+                index,
+                len - pos,
+                4,
+            ))?;
+            break;
+        };
+        let header = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+        let mask = header & 0xff;
+        let pointer_bytes = mask.count_ones() as usize * W;
+        let size = 4 + pointer_bytes.next_multiple_of(4);
+        let Some(record) = sec.get(pos..pos + size) else {
+            complete = false;
+            f.report(truncated_node(
+                base + pos as u64,
+                level,
+                index,
+                len - pos,
+                size,
+            ))?;
+            break;
+        };
+        let word = pos / 4;
+        blocks[word >> 6].starts |= 1 << (word & 63);
+        let at = base + pos as u64;
+        if mask == 0 {
+            f.report(
+                FormatError::new(
+                    ErrorCode::EmptyChildMask,
+                    at,
+                    "node has an empty child mask",
+                )
+                .at_level(level)
+                .at_node(index),
+            )?;
+        }
+        let mut count = 0u64;
+        for (rank, chunk) in record[4..4 + pointer_bytes].chunks_exact(W).enumerate() {
+            let mut p = 0u32;
+            for (j, &b) in chunk.iter().enumerate() {
+                p |= u32::from(b) << (8 * j);
+            }
+            match child.visit(p) {
+                Visit::Count(c) => count = count.saturating_add(c),
+                Visit::OutOfRange => {
+                    count = UNKNOWN;
+                    f.report(bad_pointer::<C>(
+                        true,
+                        at + 4 + (rank * W) as u64,
+                        level,
+                        index,
+                        p,
+                        child.units(),
+                    ))?;
+                }
+                Visit::NotAtNode => {
+                    count = UNKNOWN;
+                    f.report(bad_pointer::<C>(
+                        false,
+                        at + 4 + (rank * W) as u64,
+                        level,
+                        index,
+                        p,
+                        child.units(),
+                    ))?;
+                }
+            }
+        }
+        if let Some(i) = record[4 + pointer_bytes..].iter().position(|&b| b != 0) {
+            f.report(
+                FormatError::new(
+                    ErrorCode::NonzeroNodePadding,
+                    at + (4 + pointer_bytes + i) as u64,
+                    "padding after the node's pointers is not zero",
+                )
+                .at_level(level)
+                .at_node(index),
+            )?;
+        }
+        let stored = header >> layout::CHILD_MASK_BITS;
+        match attributes {
+            AttributeRule::Zero if stored != 0 => f.report(
+                FormatError::new(
+                    ErrorCode::NonzeroAttribute,
+                    at,
+                    format!("attribute kind 0 but the node's attribute bits hold {stored:#x}"),
+                )
+                .at_level(level)
+                .at_node(index),
+            )?,
+            AttributeRule::VoxelCount if count != UNKNOWN => {
+                let expected = if count >= u64::from(COUNT_SATURATED) {
+                    COUNT_SATURATED
+                } else {
+                    count as u32
+                };
+                if stored != expected {
+                    f.report(wrong_count(at, level, index, stored, count))?;
+                }
+            }
+            _ => {}
+        }
+        let slot = word / 2;
+        // A slot shared with the previous record (after a 4-byte record) stays unknown.
+        counts.set(
+            slot,
+            if slot != previous_slot {
+                count
+            } else {
+                UNKNOWN
+            },
+        );
+        previous_slot = slot;
+        pos += size;
+        index += 1;
+    }
+    if complete && index != view.entry.item_count {
+        f.report(
+            FormatError::new(
+                ErrorCode::ItemCountMismatch,
+                view.entry.entry_offset() + 24,
+                format!(
+                    "level {level} declares {} nodes, its bytes hold {index}",
+                    view.entry.item_count
+                ),
+            )
+            .at_level(level),
+        )?;
+    }
+    Ok(WalkedLevel {
+        words,
+        blocks,
+        counts,
+        records: index,
+        complete,
+    })
+}
+
+#[cold]
+fn truncated_node(at: u64, level: u8, index: u64, left: usize, needed: usize) -> FormatError {
+    FormatError::new(
+        ErrorCode::TruncatedNode,
+        at,
+        format!("node record needs {needed} bytes, only {left} remain in the level"),
+    )
+    .at_level(level)
+    .at_node(index)
+}
+
+#[cold]
+fn bad_pointer<C: ChildLevel>(
+    out_of_range: bool,
+    at: u64,
+    level: u8,
+    index: u64,
+    p: u32,
+    units: u64,
+) -> FormatError {
+    let e = if out_of_range {
+        FormatError::new(
+            ErrorCode::PointerOutOfRange,
+            at,
+            format!(
+                "pointer {p} is past the end of level {} ({units} {}s)",
+                level + 1,
+                C::UNIT
+            ),
+        )
+    } else {
+        FormatError::new(
+            ErrorCode::PointerNotAtNode,
+            at,
+            format!(
+                "pointer {p} addresses no record start of level {}",
+                level + 1
+            ),
+        )
+    };
+    e.at_level(level).at_node(index)
+}
+
+#[cold]
+fn wrong_count(at: u64, level: u8, index: u64, stored: u32, count: u64) -> FormatError {
+    let message = if count >= u64::from(COUNT_SATURATED) {
+        format!(
+            "node stores voxel count {stored:#x}; its subtree holds {count}, so it must store {COUNT_SATURATED:#x} (saturated)"
+        )
+    } else {
+        format!("node stores voxel count {stored}; its subtree holds {count}")
+    };
+    FormatError::new(ErrorCode::WrongVoxelCount, at, message)
+        .at_level(level)
+        .at_node(index)
+}
+
+/// Reports the records of `below` (the level of `view`) that no pointer of the
+/// level above addresses (E047).
+#[inline(always)]
+fn check_unreferenced(
+    f: &mut Findings,
+    below: &Below,
+    view: &Option<LevelView<'_>>,
+) -> Result<(), Stop> {
+    let Some(view) = view else { return Ok(()) };
+    let level = view.level();
+    let report = |f: &mut Findings, index: u64, byte: u64, what: &str| {
+        f.report(
+            FormatError::new(
+                ErrorCode::UnreferencedNode,
+                view.entry.offset + byte,
+                format!("{what} {index} of level {level} is referenced by no pointer"),
+            )
+            .at_level(level)
+            .at_node(index),
+        )
+    };
+    match below {
+        Below::Unusable => {}
+        Below::Leaves(leaves) => {
+            for (c, chunk) in leaves.counts.chunks(256).enumerate() {
+                if chunk.iter().fold(LEAF_REFERENCED, |acc, &n| acc & n) != 0 {
+                    continue;
+                }
+                for (i, _) in chunk
+                    .iter()
+                    .enumerate()
+                    .filter(|&(_, &n)| n & LEAF_REFERENCED == 0)
+                {
+                    let index = (c * 256 + i) as u64;
+                    report(f, index, index * 8, "leaf")?;
+                }
+            }
+        }
+        Below::Nodes16(NodeLevel { blocks, .. })
+        | Below::Nodes32(NodeLevel { blocks, .. })
+        | Below::Nodes64(NodeLevel { blocks, .. }) => {
+            // Records before the current block, for the record numbers reported.
+            let mut rank = 0u64;
+            for (b, block) in blocks.iter().enumerate() {
+                let mut missing = block.starts & !block.referenced;
+                while missing != 0 {
+                    let bit = missing.trailing_zeros();
+                    missing &= missing - 1;
+                    let index = rank + u64::from((block.starts & ((1u64 << bit) - 1)).count_ones());
+                    let word = (b * 64) as u64 + u64::from(bit);
+                    report(f, index, word * 4, "node")?;
+                }
+                rank += u64::from(block.starts.count_ones());
+            }
+        }
+    }
+    Ok(())
+}

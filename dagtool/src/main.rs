@@ -1,6 +1,309 @@
-//! `dagtool`: convert meshes to `.vdag`, validate, inspect and verify.
+//! `dagtool`: convert meshes and voxel lists to `.vdag`, validate, inspect.
 
-fn main() {
-    eprintln!("dagtool: not implemented yet");
-    std::process::exit(2);
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use dagtool::ConvertError;
+use dagtool::cmd;
+use dagtool::convert::{self, ConvertOptions, InputFormat};
+use dagtool::sysinfo::parse_size;
+
+const CONVERT_HELP: &str = "\
+INPUTS
+  Wavefront OBJ (.obj): every model and group; polygons are triangulated as fans;
+  points and lines become zero-area triangles. Materials (Kd) are read for --colors.
+
+  Text voxel list (.txt, .xyz, .voxels): one voxel per line, `x y z` as unsigned
+  integers; `#` starts a comment; blank lines are ignored. Without --depth the
+  smallest depth holding every voxel is used.
+
+  Binary voxel list (any extension, recognised by its magic), little-endian:
+    offset 0   4 bytes   magic \"VVOX\"
+    offset 4   u32       version = 1
+    offset 8   u32       depth D (2..=21)
+    offset 12  u64       count N
+    offset 20  N x 12    records: u32 x, u32 y, u32 z (each < 2^D)
+  The file is exactly 20 + 12 N bytes. Duplicates are allowed in both forms.
+  Voxel lists map to the root cube min (0,0,0), size 2^D (world units = voxels).
+
+PLACEMENT (meshes)
+  The root cube is centred on the mesh's bounding box with edge
+  max_extent * 2^D / (2^D - 1): along the longest axis the mesh spans 2^D - 1
+  voxels with half a voxel of padding on each side. It is stored in the header,
+  so hit points map back to mesh coordinates. Vertices are snapped to 1/65536
+  of a voxel; from there on every test is exact integer arithmetic.
+
+VOXELIZATION
+  Conservative: every voxel whose closed cube intersects a closed triangle is set
+  (13-axis separating axis test, exact). Zero-area triangles count as segments
+  or points. --solid also sets every voxel whose centre is inside the mesh by
+  crossing parity. If every edge of the mesh (after welding equal vertices) is
+  used an even number of times the mesh is closed and parity along z decides;
+  otherwise inside means odd parity along at least two of the x, y and z axes.
+  --solid works up to depth 16; its time grows with the interior volume (every
+  interior 4^3 brick goes through the DAG builder).
+
+ATTRIBUTES
+  Nodes store subtree voxel counts (attribute kind 1). --colors adds a colour
+  section: each surface voxel takes the diffuse colour (Kd, alpha from d) of
+  the lowest-numbered triangle touching it; voxels with no material and
+  interior voxels of --solid are white. Colours need 4 bytes per voxel in memory.
+
+MEMORY AND OUTPUT
+  The volume is processed in chunks of 128^3 voxels in Morton order on all cores;
+  memory is the mesh, the triangle bins and the DAG's distinct nodes. The process
+  stops with an error if its resident memory exceeds --memory-limit. The output is
+  written to a temporary file beside it, synced and renamed: it is either complete
+  or absent. An existing output is never replaced without --force.";
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "dagtool",
+    version,
+    about = "Convert meshes and voxel lists to .vdag sparse voxel DAGs; validate and inspect .vdag files"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Convert an OBJ mesh or a voxel list to a .vdag file.
+    #[command(after_long_help = CONVERT_HELP)]
+    Convert(ConvertArgs),
+    /// Check .vdag (or .vdag.zst) files against every rule of the format.
+    /// Exit status: 0 all valid, 1 some invalid, 2 usage or I/O error.
+    Validate {
+        /// Files to check.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Print one JSON document instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Show the header, a per-level table, totals, and the size of the same DAG
+    /// with 32-bit pointers and as a sparse voxel octree.
+    Info {
+        /// The .vdag (or .vdag.zst) file.
+        file: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Annotated listing (offset | bytes | meaning) of the header, section table
+    /// and the first nodes of every level.
+    Dump {
+        /// The .vdag (or .vdag.zst) file.
+        file: PathBuf,
+        /// Records listed per level.
+        #[arg(long, default_value_t = 8)]
+        nodes: u64,
+    },
+    /// Compress a .vdag into the zstd transport form (.vdag.zst).
+    Pack {
+        /// The .vdag file.
+        input: PathBuf,
+        /// The .vdag.zst file to write.
+        output: PathBuf,
+        /// zstd level (1..=22).
+        #[arg(long, default_value_t = dagfmt::transport::DEFAULT_LEVEL)]
+        level: i32,
+        /// Replace an existing output file.
+        #[arg(long)]
+        force: bool,
+    },
+    /// Decompress a .vdag.zst transport file (and validate it).
+    Unpack {
+        /// The .vdag.zst file.
+        input: PathBuf,
+        /// The .vdag file to write.
+        output: PathBuf,
+        /// Refuse files that would unpack to more than this many bytes (e.g. 4G).
+        #[arg(long)]
+        max_size: Option<String>,
+        /// Replace an existing output file.
+        #[arg(long)]
+        force: bool,
+    },
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum FormatArg {
+    /// From the magic and the extension.
+    Auto,
+    /// Wavefront OBJ.
+    Obj,
+    /// Text or binary voxel list.
+    Voxels,
+}
+
+#[derive(Args, Debug)]
+struct ConvertArgs {
+    /// Input: .obj mesh, or a text/binary voxel list.
+    input: PathBuf,
+    /// Output .vdag file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Depth D (2..=21): 2^D voxels per axis.
+    #[arg(short, long, conflicts_with = "resolution")]
+    depth: Option<u32>,
+    /// Resolution N = 2^D voxels per axis (a power of two, 4..=2097152).
+    #[arg(short, long)]
+    resolution: Option<u64>,
+    /// Fill the interior (see below for open meshes).
+    #[arg(long)]
+    solid: bool,
+    /// Store per-voxel colours from the OBJ materials (diffuse Kd).
+    #[arg(long)]
+    colors: bool,
+    /// Input format.
+    #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
+    input_format: FormatArg,
+    /// Stop with an error if resident memory exceeds this (e.g. 4G, 512M);
+    /// default: 3/4 of physical memory.
+    #[arg(long)]
+    memory_limit: Option<String>,
+    /// Chunk side as log2 of voxels (2..=7; default 7 = 128^3). The output
+    /// does not depend on it.
+    #[arg(long)]
+    chunk_bits: Option<u32>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Replace an existing output file.
+    #[arg(long)]
+    force: bool,
+    /// No progress bar and no summary.
+    #[arg(short, long)]
+    quiet: bool,
+}
+
+fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
+    let depth = match (args.depth, args.resolution) {
+        (Some(d), _) => Some(convert::check_depth(d)?),
+        (None, Some(r)) => Some(convert::depth_of_resolution(r)?),
+        (None, None) => None,
+    };
+    let memory_limit = match &args.memory_limit {
+        Some(s) => Some(parse_size(s).ok_or_else(|| {
+            ConvertError::Usage(format!(
+                "--memory-limit {s} is not a size such as 4G or 512M"
+            ))
+        })?),
+        None => None,
+    };
+    let mut opts = ConvertOptions::new(&args.input, &args.output, depth);
+    opts.format = match args.input_format {
+        FormatArg::Auto => InputFormat::Auto,
+        FormatArg::Obj => InputFormat::Obj,
+        FormatArg::Voxels => InputFormat::Voxels,
+    };
+    opts.solid = args.solid;
+    opts.colors = args.colors;
+    opts.force = args.force;
+    opts.progress = !args.quiet;
+    opts.memory_limit = memory_limit;
+    opts.chunk_bits = args.chunk_bits;
+    let run = || convert::convert(&opts);
+    let summary = match args.threads {
+        Some(0) => return Err(ConvertError::Usage("--threads must be at least 1".into())),
+        Some(n) => rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .map_err(|e| ConvertError::Usage(format!("cannot start {n} threads: {e}")))?
+            .install(run)?,
+        None => run()?,
+    };
+    if !args.quiet {
+        println!("{}", summary.render(&args.output));
+    }
+    Ok(())
+}
+
+fn run(cli: Cli) -> Result<i32, ConvertError> {
+    match cli.command {
+        Command::Convert(args) => convert_cmd(args).map(|()| 0),
+        Command::Validate { files, json } => {
+            let stdout = std::io::stdout();
+            let stderr = std::io::stderr();
+            let outcome = cmd::validate::run(&files, json, &mut stdout.lock(), &mut stderr.lock())
+                .map_err(|e| ConvertError::io("cannot write the report", e))?;
+            Ok(outcome.exit_code())
+        }
+        Command::Info { file, json } => {
+            println!("{}", cmd::info::run(&file, json)?);
+            Ok(0)
+        }
+        Command::Dump { file, nodes } => {
+            print!("{}", cmd::dump::run(&file, nodes)?);
+            Ok(0)
+        }
+        Command::Pack {
+            input,
+            output,
+            level,
+            force,
+        } => {
+            if !(1..=22).contains(&level) {
+                return Err(ConvertError::Usage(format!(
+                    "zstd level {level} is outside 1..=22"
+                )));
+            }
+            let (a, b) = cmd::pack::pack(&input, &output, level, force)?;
+            println!(
+                "{}: {a} bytes -> {}: {b} bytes ({:.1}%)",
+                input.display(),
+                output.display(),
+                100.0 * b as f64 / a.max(1) as f64
+            );
+            Ok(0)
+        }
+        Command::Unpack {
+            input,
+            output,
+            max_size,
+            force,
+        } => {
+            let max = match max_size {
+                Some(s) => parse_size(&s).ok_or_else(|| {
+                    ConvertError::Usage(format!("--max-size {s} is not a size such as 4G"))
+                })?,
+                None => dagfmt::transport::DEFAULT_MAX_SIZE,
+            };
+            let (a, b) = cmd::pack::unpack(&input, &output, max, force)?;
+            println!(
+                "{}: {a} bytes -> {}: {b} bytes (valid)",
+                input.display(),
+                output.display()
+            );
+            Ok(0)
+        }
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            if !e.use_stderr() {
+                // --help and --version.
+                let _ = e.print();
+                return ExitCode::SUCCESS;
+            }
+            let text = e.to_string();
+            let first = text.lines().next().unwrap_or("invalid arguments");
+            let first = first.strip_prefix("error: ").unwrap_or(first);
+            eprintln!("dagtool: error: {first} (see dagtool --help)");
+            return ExitCode::from(2);
+        }
+    };
+    match run(cli) {
+        Ok(code) => ExitCode::from(code as u8),
+        Err(e) => {
+            eprintln!("dagtool: error: {e}");
+            ExitCode::from(e.exit_code() as u8)
+        }
+    }
 }

@@ -1,0 +1,447 @@
+//! Running the committed cases against a tracer or a validator.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use dagfmt::batch::{self, Hit, Ray};
+use dagfmt::{Dag, ErrorCode};
+
+use crate::bless::{self, TRACE_DIR, VALIDATE_DIR, VALIDATE_INDEX};
+use crate::expect;
+
+/// The files of one tracer case on disk.
+#[derive(Clone, Debug)]
+pub struct TraceCaseFiles {
+    /// Case name (file stem).
+    pub name: String,
+    /// The `.vdag` file.
+    pub dag: PathBuf,
+    /// The rays (text format).
+    pub rays: PathBuf,
+    /// The expectations.
+    pub expect: PathBuf,
+}
+
+/// One validator case on disk.
+#[derive(Clone, Debug)]
+pub struct ValidateCaseFile {
+    /// Case name: `validate/<stem>` or `trace/<stem>` (tracer files must be valid too).
+    pub name: String,
+    /// The file.
+    pub path: PathBuf,
+    /// `None`: must be accepted; else the code it must be rejected with.
+    pub expected: Option<ErrorCode>,
+    /// What the case is.
+    pub description: String,
+}
+
+/// The default cases directory: the one committed next to this crate's sources.
+pub fn default_cases_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("cases")
+}
+
+fn matches(name: &str, filter: Option<&str>) -> bool {
+    filter.is_none_or(|f| name.contains(f))
+}
+
+/// The tracer cases under `root`, sorted by name; `filter` keeps names
+/// containing it.
+pub fn trace_cases(root: &Path, filter: Option<&str>) -> Result<Vec<TraceCaseFiles>, String> {
+    let dir = root.join(TRACE_DIR);
+    let entries =
+        std::fs::read_dir(&dir).map_err(|e| format!("cannot list {}: {e}", dir.display()))?;
+    let mut cases = Vec::new();
+    for entry in entries {
+        let path = entry
+            .map_err(|e| format!("cannot list {}: {e}", dir.display()))?
+            .path();
+        if path.extension().is_some_and(|e| e == "vdag") {
+            let name = path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .unwrap_or_default()
+                .to_string();
+            if matches(&name, filter) {
+                cases.push(TraceCaseFiles {
+                    rays: path.with_extension("rays"),
+                    expect: path.with_extension("expect"),
+                    dag: path,
+                    name,
+                });
+            }
+        }
+    }
+    cases.sort_by(|a, b| a.name.cmp(&b.name));
+    if cases.is_empty() {
+        return Err(format!("no tracer cases in {} match", dir.display()));
+    }
+    Ok(cases)
+}
+
+/// The validator cases under `root`: the files listed in
+/// `validate/expected.txt`, then every tracer case file (valid).
+pub fn validate_cases(root: &Path, filter: Option<&str>) -> Result<Vec<ValidateCaseFile>, String> {
+    let index_path = root.join(VALIDATE_DIR).join(VALIDATE_INDEX);
+    let index = std::fs::read_to_string(&index_path)
+        .map_err(|e| format!("cannot read {}: {e}", index_path.display()))?;
+    let mut cases = Vec::new();
+    for (number, line) in index.lines().enumerate() {
+        let (content, comment) = line.split_once('#').unwrap_or((line, ""));
+        let fields: Vec<&str> = content.split_ascii_whitespace().collect();
+        if fields.is_empty() {
+            continue;
+        }
+        let [file, outcome] = fields[..] else {
+            return Err(format!(
+                "{}:{}: expected `FILE valid|CODE`",
+                index_path.display(),
+                number + 1
+            ));
+        };
+        let expected = match outcome {
+            "valid" => None,
+            code => Some(ErrorCode::parse(code).ok_or_else(|| {
+                format!(
+                    "{}:{}: unknown error code `{code}`",
+                    index_path.display(),
+                    number + 1
+                )
+            })?),
+        };
+        let name = format!("{VALIDATE_DIR}/{}", file.trim_end_matches(".vdag"));
+        if matches(&name, filter) {
+            cases.push(ValidateCaseFile {
+                name,
+                path: root.join(VALIDATE_DIR).join(file),
+                expected,
+                description: comment.trim().to_string(),
+            });
+        }
+    }
+    for case in trace_cases(root, None)? {
+        let name = format!("{TRACE_DIR}/{}", case.name);
+        if matches(&name, filter) {
+            cases.push(ValidateCaseFile {
+                name,
+                path: case.dag,
+                expected: None,
+                description: "a tracer case's file".into(),
+            });
+        }
+    }
+    if cases.is_empty() {
+        return Err(format!("no validator cases in {} match", root.display()));
+    }
+    Ok(cases)
+}
+
+/// Result of one case.
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    /// Case name.
+    pub name: String,
+    /// Rays (or files) checked.
+    pub checked: usize,
+    /// Problems found, one line each (empty: passed).
+    pub failures: Vec<String>,
+}
+
+impl Outcome {
+    /// Whether the case passed.
+    pub fn passed(&self) -> bool {
+        self.failures.is_empty()
+    }
+
+    fn error(name: &str, message: String) -> Self {
+        Outcome {
+            name: name.into(),
+            checked: 0,
+            failures: vec![message],
+        }
+    }
+}
+
+/// A tracer to run the cases against.
+pub trait TraceBackend {
+    /// Answers every ray of a case: one hit per ray, in order.
+    fn trace(&self, case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String>;
+}
+
+/// The in-process CPU tracer (`dagtrace`).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CpuTracer;
+
+impl TraceBackend for CpuTracer {
+    fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
+        let dag = Dag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
+        let tracer =
+            dagtrace::Tracer::new(&dag).map_err(|e| format!("the tracer refuses the file: {e}"))?;
+        tracer
+            .trace_batch(rays)
+            .map_err(|e| format!("tracing failed: {e}"))
+    }
+}
+
+/// Quotes a path for `sh`.
+pub fn shell_quote(path: &Path) -> String {
+    format!("'{}'", path.to_string_lossy().replace('\'', r"'\''"))
+}
+
+/// Runs `command` with `sh -c` after replacing each `{name}` by its quoted path.
+fn run_command(
+    template: &str,
+    substitutions: &[(&str, &Path)],
+) -> Result<std::process::Output, String> {
+    let mut command = template.to_string();
+    for (name, path) in substitutions {
+        command = command.replace(&format!("{{{name}}}"), &shell_quote(path));
+    }
+    Command::new("sh")
+        .arg("-c")
+        .arg(&command)
+        .output()
+        .map_err(|e| format!("cannot run `sh -c {command}`: {e}"))
+}
+
+fn tail(bytes: &[u8]) -> String {
+    let text = String::from_utf8_lossy(bytes);
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(5)..].join(" | ")
+}
+
+/// An external tracer driven through the batch protocol.
+#[derive(Clone, Debug)]
+pub struct ExecTracer {
+    /// Command template with `{dag}`, `{rays}` and `{hits}`.
+    pub command: String,
+    /// Hand the rays over in the binary format instead of the case's text file.
+    pub binary_rays: bool,
+}
+
+impl TraceBackend for ExecTracer {
+    fn trace(&self, case: &TraceCaseFiles, _file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
+        let temp =
+            tempfile::tempdir().map_err(|e| format!("cannot make a temporary directory: {e}"))?;
+        let hits_path = temp.path().join("hits");
+        let rays_path = if self.binary_rays {
+            let path = temp.path().join("rays.bin");
+            let mut bytes = Vec::new();
+            batch::write_rays_binary(&mut bytes, rays).map_err(|e| e.to_string())?;
+            std::fs::write(&path, bytes)
+                .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+            path
+        } else {
+            case.rays.clone()
+        };
+        let output = run_command(
+            &self.command,
+            &[
+                ("dag", &case.dag),
+                ("rays", &rays_path),
+                ("hits", &hits_path),
+            ],
+        )?;
+        if !output.status.success() {
+            return Err(format!(
+                "the tracer command failed ({}): {}",
+                output.status,
+                tail(&output.stderr)
+            ));
+        }
+        let bytes =
+            std::fs::read(&hits_path).map_err(|e| format!("the tracer wrote no hits file: {e}"))?;
+        let hits =
+            batch::parse_hits(&bytes).map_err(|e| format!("the hits file is malformed: {e}"))?;
+        if hits.len() != rays.len() {
+            return Err(format!("{} answers for {} rays", hits.len(), rays.len()));
+        }
+        Ok(hits)
+    }
+}
+
+/// At most this many failing rays are listed per case.
+pub const MAX_LISTED: usize = 10;
+
+/// Runs one tracer case.
+pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outcome {
+    let read = |p: &Path| std::fs::read(p).map_err(|e| format!("cannot read {}: {e}", p.display()));
+    let (file, rays_bytes, expect_text) =
+        match (read(&case.dag), read(&case.rays), read(&case.expect)) {
+            (Ok(a), Ok(b), Ok(c)) => (a, b, String::from_utf8_lossy(&c).into_owned()),
+            (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => {
+                return Outcome::error(&case.name, e);
+            }
+        };
+    let rays = match batch::parse_rays(&rays_bytes) {
+        Ok(r) => r,
+        Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.rays.display())),
+    };
+    let expectations = match expect::parse_file(&expect_text) {
+        Ok(e) if e.len() == rays.len() => e,
+        Ok(e) => {
+            return Outcome::error(
+                &case.name,
+                format!("{} expectations for {} rays", e.len(), rays.len()),
+            );
+        }
+        Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.expect.display())),
+    };
+    let hits = match backend.trace(case, &file, &rays) {
+        Ok(h) => h,
+        Err(e) => return Outcome::error(&case.name, e),
+    };
+    let mut failures = Vec::new();
+    let mut failed = 0usize;
+    for (i, ((ray, expected), hit)) in rays.iter().zip(&expectations).zip(&hits).enumerate() {
+        if let Err(reason) = expect::judge(expected, hit) {
+            failed += 1;
+            if failures.len() < MAX_LISTED {
+                failures.push(format!(
+                    "ray {i}: {}\n      expected: {}\n      got:      {}\n      because:  {reason}",
+                    bless::format_ray(ray),
+                    expect::format_expectation(expected),
+                    expect::format_answer(hit)
+                ));
+            }
+        }
+    }
+    if failed > failures.len() {
+        failures.push(format!(
+            "... and {} more failing rays ({failed} of {} in all)",
+            failed - failures.len(),
+            rays.len()
+        ));
+    }
+    Outcome {
+        name: case.name.clone(),
+        checked: rays.len(),
+        failures,
+    }
+}
+
+/// A validator to run the cases against.
+pub trait ValidateBackend {
+    /// `Ok(codes)`: the file was rejected with these codes (empty: accepted).
+    /// `Err`: the validator could not be run.
+    fn validate(&self, path: &Path, file: &[u8]) -> Result<Verdict, String>;
+}
+
+/// What a validator said about a file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// Accepted.
+    Valid,
+    /// Rejected; the text it printed (searched for the expected code).
+    Invalid(String),
+}
+
+/// The in-process validator (`dagfmt::validate`).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct InProcessValidator;
+
+impl ValidateBackend for InProcessValidator {
+    fn validate(&self, _path: &Path, file: &[u8]) -> Result<Verdict, String> {
+        let errors = dagfmt::validate::validate(file);
+        if errors.is_empty() {
+            Ok(Verdict::Valid)
+        } else {
+            Ok(Verdict::Invalid(
+                errors
+                    .iter()
+                    .map(|e| e.to_string())
+                    .collect::<Vec<_>>()
+                    .join("\n"),
+            ))
+        }
+    }
+}
+
+/// An external validator: `{file}` in the command is replaced by the file's path.
+#[derive(Clone, Debug)]
+pub struct ExecValidator {
+    /// Command template with `{file}`.
+    pub command: String,
+}
+
+impl ValidateBackend for ExecValidator {
+    fn validate(&self, path: &Path, _file: &[u8]) -> Result<Verdict, String> {
+        let output = run_command(&self.command, &[("file", path)])?;
+        if output.status.success() {
+            return Ok(Verdict::Valid);
+        }
+        if output.status.code().is_none() {
+            return Err(format!("the validator was killed ({})", output.status));
+        }
+        let mut text = String::from_utf8_lossy(&output.stdout).into_owned();
+        text.push('\n');
+        text.push_str(&String::from_utf8_lossy(&output.stderr));
+        Ok(Verdict::Invalid(text))
+    }
+}
+
+/// Whether `text` contains `code` (such as `E041`) as a word of its own.
+pub fn mentions_code(text: &str, code: &str) -> bool {
+    text.match_indices(code).any(|(at, _)| {
+        let before = text[..at].chars().next_back();
+        let after = text[at + code.len()..].chars().next();
+        !before.is_some_and(|c| c.is_ascii_alphanumeric())
+            && !after.is_some_and(|c| c.is_ascii_alphanumeric())
+    })
+}
+
+/// Runs one validator case.
+pub fn run_validate_case(case: &ValidateCaseFile, backend: &dyn ValidateBackend) -> Outcome {
+    let file = match std::fs::read(&case.path) {
+        Ok(f) => f,
+        Err(e) => {
+            return Outcome::error(
+                &case.name,
+                format!("cannot read {}: {e}", case.path.display()),
+            );
+        }
+    };
+    let verdict = match backend.validate(&case.path, &file) {
+        Ok(v) => v,
+        Err(e) => return Outcome::error(&case.name, e),
+    };
+    let failure = match (&case.expected, verdict) {
+        (None, Verdict::Valid) => None,
+        (None, Verdict::Invalid(text)) => Some(format!(
+            "a valid file was rejected: {}",
+            tail(text.as_bytes())
+        )),
+        (Some(code), Verdict::Valid) => Some(format!("accepted, expected rejection with {code}")),
+        (Some(code), Verdict::Invalid(text)) if mentions_code(&text, code.code()) => None,
+        (Some(code), Verdict::Invalid(text)) => Some(format!(
+            "rejected without reporting {code}; reported: {}",
+            tail(text.as_bytes())
+        )),
+    };
+    Outcome {
+        name: case.name.clone(),
+        checked: 1,
+        failures: failure.into_iter().collect(),
+    }
+}
+
+/// Prints the failures of `outcomes` and the summary line; returns whether all passed.
+pub fn report(outcomes: &[Outcome], what: &str) -> bool {
+    let mut passed = 0;
+    let mut failed = 0;
+    let mut checked = 0;
+    for o in outcomes {
+        checked += o.checked;
+        if o.passed() {
+            passed += 1;
+        } else {
+            failed += 1;
+            println!("FAIL {}", o.name);
+            for f in &o.failures {
+                println!("    {f}");
+            }
+        }
+    }
+    println!("{checked} {what} checked in {} cases", outcomes.len());
+    println!("{passed} passed, {failed} failed");
+    failed == 0
+}

@@ -1,0 +1,266 @@
+//! The conformance suite under `cargo test`: every committed case against the
+//! in-process CPU tracer and validator, the runner binary against external
+//! commands (dagtrace's binary, a validator adapter, deliberately broken
+//! tracers), and the reproducibility of the committed case files.
+//!
+//! `BLESS=1 cargo test -p conformance` regenerates the committed cases first.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use conformance::suite::{self, CpuTracer, InProcessValidator, Outcome, TraceBackend, TraceCaseFiles};
+use conformance::{bless, model};
+use dagfmt::batch::{Hit, Ray};
+
+fn cases_dir() -> PathBuf {
+    suite::default_cases_dir()
+}
+
+fn conformance_exe() -> &'static str {
+    env!("CARGO_BIN_EXE_conformance")
+}
+
+/// With `BLESS=1`, regenerates the committed cases once before any test reads them.
+fn committed_cases() -> &'static Path {
+    static BLESSED: OnceLock<PathBuf> = OnceLock::new();
+    BLESSED.get_or_init(|| {
+        let dir = cases_dir();
+        if std::env::var_os("BLESS").is_some_and(|v| v == "1") {
+            let files = bless::generate().expect("generation succeeds");
+            bless::write(&dir, &files).expect("writing the cases");
+            eprintln!("BLESS=1: rewrote {} case files in {}", files.len(), dir.display());
+        }
+        dir
+    })
+}
+
+fn show(outcomes: &[Outcome]) -> String {
+    outcomes
+        .iter()
+        .filter(|o| !o.passed())
+        .map(|o| format!("FAIL {}\n    {}", o.name, o.failures.join("\n    ")))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn run(args: &[&str]) -> Output {
+    Command::new(conformance_exe()).args(args).output().expect("the conformance binary runs")
+}
+
+fn stdout(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+/// The `N passed, N failed` line the runner must end with.
+fn summary(output: &Output) -> (usize, usize) {
+    let text = stdout(output);
+    let last = text.lines().last().unwrap_or_default().to_string();
+    let parsed = (|| {
+        let (p, f) = last.split_once(" passed, ")?;
+        Some((p.parse().ok()?, f.strip_suffix(" failed")?.parse().ok()?))
+    })();
+    parsed.unwrap_or_else(|| panic!("the output does not end with `N passed, N failed`:\n{text}"))
+}
+
+#[test]
+fn cpu_tracer_passes_every_case() {
+    let cases = suite::trace_cases(committed_cases(), None).expect("committed cases");
+    assert!(cases.len() >= 40, "only {} tracer cases", cases.len());
+    let outcomes: Vec<_> = cases.iter().map(|c| suite::run_trace_case(c, &CpuTracer)).collect();
+    let rays: usize = outcomes.iter().map(|o| o.checked).sum();
+    assert!(rays >= 5000, "only {rays} rays");
+    assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
+}
+
+#[test]
+fn validator_passes_every_case() {
+    let cases = suite::validate_cases(committed_cases(), None).expect("committed cases");
+    // One case (at least) for every error code but the untestable ones.
+    for &code in dagfmt::ErrorCode::ALL {
+        let covered = cases.iter().any(|c| c.expected == Some(code));
+        let untestable = conformance::malformed::UNTESTABLE.iter().any(|(c, _)| *c == code);
+        assert!(covered != untestable, "{code}: covered {covered}, listed untestable {untestable}");
+    }
+    let outcomes: Vec<_> = cases.iter().map(|c| suite::run_validate_case(c, &InProcessValidator)).collect();
+    assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
+}
+
+#[test]
+fn malformed_files_break_only_their_rule() {
+    // Where the edit can break one rule alone, dagfmt's validator (which
+    // reports every finding) reports that code and no other.
+    let cases = suite::validate_cases(committed_cases(), Some("validate/E")).expect("committed cases");
+    let consequential = ["E030", "E042", "E012"];
+    for case in cases {
+        let expected = case.expected.expect("malformed");
+        let bytes = std::fs::read(&case.path).expect("read");
+        let mut codes: Vec<_> = dagfmt::validate::validate(&bytes).iter().map(|e| e.code).collect();
+        codes.dedup();
+        if !consequential.contains(&expected.code()) {
+            assert_eq!(codes, vec![expected], "{}", case.name);
+        }
+    }
+}
+
+#[test]
+fn committed_cases_are_reproducible() {
+    let committed = committed_cases();
+    let temp = tempfile::tempdir().expect("temp dir");
+    let output = run(&["bless", "--out", temp.path().to_str().expect("UTF-8 temp path")]);
+    assert!(output.status.success(), "bless failed: {}", String::from_utf8_lossy(&output.stderr));
+    let list = |root: &Path| -> Vec<String> {
+        let mut names = Vec::new();
+        for dir in [bless::TRACE_DIR, bless::VALIDATE_DIR] {
+            for entry in std::fs::read_dir(root.join(dir)).expect("list") {
+                names.push(format!("{dir}/{}", entry.expect("entry").file_name().to_string_lossy()));
+            }
+        }
+        names.sort();
+        names
+    };
+    let fresh = list(temp.path());
+    assert_eq!(fresh, list(committed), "the committed case files differ from bless's (run `BLESS=1 cargo test -p conformance`)");
+    for name in fresh {
+        let a = std::fs::read(temp.path().join(&name)).expect("read");
+        let b = std::fs::read(committed.join(&name)).expect("read");
+        assert!(a == b, "{name} differs from what bless writes (run `BLESS=1 cargo test -p conformance`)");
+    }
+    let total: u64 = ["trace", "validate"]
+        .iter()
+        .flat_map(|d| std::fs::read_dir(committed.join(d)).expect("list"))
+        .map(|e| e.expect("entry").metadata().expect("metadata").len())
+        .sum();
+    assert!(total < 3 << 20, "the committed cases take {total} bytes");
+}
+
+#[test]
+fn model_encoder_reproduces_builder_files() {
+    for case in suite::trace_cases(committed_cases(), None).expect("cases") {
+        if case.name.starts_with("reordered") || case.name.starts_with("undeduplicated") {
+            continue;
+        }
+        let bytes = std::fs::read(&case.dag).expect("read");
+        let decoded = model::DagModel::decode(&bytes).expect("decodes");
+        assert!(decoded.encode() == bytes, "{}: decode + encode changes the file", case.name);
+    }
+}
+
+/// A tracer that answers like the CPU tracer but with one thing changed.
+struct Mutant(fn(&Ray, Hit) -> Hit);
+
+impl TraceBackend for Mutant {
+    fn trace(&self, case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
+        let hits = CpuTracer.trace(case, file, rays)?;
+        Ok(rays.iter().zip(hits).map(|(r, h)| (self.0)(r, h)).collect())
+    }
+}
+
+#[test]
+fn the_judge_catches_wrong_answers() {
+    let cases = suite::trace_cases(committed_cases(), None).expect("cases");
+    type Mutation = fn(&Ray, Hit) -> Hit;
+    let mutants: [(&str, Mutation); 8] = [
+        ("every hit becomes a miss", |_, _| Hit::MISS),
+        ("t a bit late", |_, h| Hit { t: h.t + 0.01 * h.t.abs().max(0.05), ..h }),
+        ("t a bit early", |_, h| Hit { t: h.t - 0.01 * h.t.abs().max(0.05), ..h }),
+        ("wrong face", |_, h| Hit { face: (h.face + 1) % 7, ..h }),
+        ("wrong index", |_, h| Hit { index: h.index.map(|i| i + 1), ..h }),
+        ("neighbouring cell", |_, h| Hit { voxel: [h.voxel[0] ^ 1, h.voxel[1], h.voxel[2]], ..h }),
+        ("wrong level", |_, h| Hit { level: if h.level > 1 { h.level - 1 } else { 2 }, ..h }),
+        ("misses become hits", |r, h| if h.hit { h } else { Hit { hit: true, t: r.tmin.max(0.0), voxel: [0; 3], level: r.level.unwrap_or(1), face: 1, index: Some(0) } }),
+    ];
+    for (what, f) in mutants {
+        let outcomes: Vec<_> = cases.iter().map(|c| suite::run_trace_case(c, &Mutant(f))).collect();
+        let failed = outcomes.iter().filter(|o| !o.passed()).count();
+        assert!(failed * 2 >= outcomes.len(), "mutant `{what}` fails only {failed} of {} cases", outcomes.len());
+    }
+}
+
+#[test]
+fn runner_drives_an_external_validator() {
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let command = format!("'{}' validate-file {{file}}", conformance_exe());
+    let output = run(&["validate", "--cases", &cases, "--exec", &command]);
+    let (passed, failed) = summary(&output);
+    assert!(output.status.success() && failed == 0 && passed > 50, "{}", stdout(&output));
+    // A validator that accepts everything fails every malformed case.
+    let output = run(&["validate", "--cases", &cases, "--exec", "true"]);
+    let (_, failed) = summary(&output);
+    assert_eq!(output.status.code(), Some(1));
+    assert!(failed >= dagfmt::ErrorCode::ALL.len() - 1, "{}", stdout(&output));
+    assert!(stdout(&output).contains("accepted, expected rejection with E041"));
+}
+
+#[test]
+fn runner_reports_broken_external_tracers() {
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    // A command that fails.
+    let output = run(&["run", "--cases", &cases, "--filter", "full", "--exec", "exit 3"]);
+    assert_eq!(output.status.code(), Some(1));
+    let (passed, failed) = summary(&output);
+    assert!(passed == 0 && failed >= 2, "{}", stdout(&output));
+    // A tracer that answers `miss` to every ray.
+    let all_miss = "{ echo vdag-hits 1; grep -v -e '^#' -e '^vdag-rays' -e '^$' {rays} | sed 's/.*/miss/'; } > {hits}";
+    let output = run(&["run", "--cases", &cases, "--filter", "full-d4", "--exec", all_miss]);
+    assert_eq!(output.status.code(), Some(1));
+    let text = stdout(&output);
+    assert!(text.contains("FAIL full-d4") && text.contains("a hit is required") && text.contains("expected: hit 4"), "{text}");
+    assert_eq!(summary(&output), (0, 1));
+    // The GPU tracer is announced as unavailable.
+    let output = run(&["run", "--tracer", "gpu"]);
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("not available yet"));
+}
+
+#[test]
+fn runner_passes_with_the_in_process_tracer() {
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let output = run(&["run", "--tracer", "cpu", "--cases", &cases]);
+    let (passed, failed) = summary(&output);
+    assert!(output.status.success() && failed == 0 && passed >= 40, "{}", stdout(&output));
+}
+
+/// Builds dagtrace's `dagtrace` binary into the target directory this test
+/// runs from (where it is found next to the conformance binary) and returns
+/// its path; `None` (with a message) while the package has no such binary.
+fn dagtrace_binary() -> Option<PathBuf> {
+    let ours = PathBuf::from(conformance_exe());
+    let profile_dir = ours.parent().expect("binary directory");
+    let target_dir = profile_dir.parent().expect("target directory");
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("workspace root");
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let mut command = Command::new(cargo);
+    command.current_dir(workspace).args(["build", "-p", "dagtrace", "--bin", "dagtrace"]);
+    command.env("CARGO_TARGET_DIR", target_dir);
+    if profile_dir.file_name().is_some_and(|n| n == "release") {
+        command.arg("--release");
+    }
+    let output = command.output().expect("cargo runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    if !output.status.success() {
+        if stderr.contains("no bin target named `dagtrace`") {
+            eprintln!("skipping: the dagtrace package has no `dagtrace` binary yet");
+            return None;
+        }
+        panic!("building the dagtrace binary failed:\n{stderr}");
+    }
+    let binary = profile_dir.join(format!("dagtrace{}", std::env::consts::EXE_SUFFIX));
+    assert!(binary.exists(), "{} was not built", binary.display());
+    Some(binary)
+}
+
+#[test]
+fn runner_drives_the_dagtrace_binary() {
+    let Some(dagtrace) = dagtrace_binary() else { return };
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let quoted = suite::shell_quote(&dagtrace);
+    for (format, extra) in [("text", &[][..]), ("binary", &["--binary-rays"][..])] {
+        let command = format!("{quoted} trace {{dag}} --rays {{rays}} --out {{hits}} --format {format}");
+        let mut args = vec!["run", "--cases", &cases, "--exec", &command];
+        args.extend_from_slice(extra);
+        let output = run(&args);
+        let (passed, failed) = summary(&output);
+        assert!(output.status.success() && failed == 0 && passed >= 40, "{format}: {}", stdout(&output));
+    }
+}

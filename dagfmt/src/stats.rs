@@ -1,0 +1,311 @@
+//! Size statistics of a DAG: per level, and compared with the classic SVDAG
+//! layout and with an uncompressed sparse voxel octree.
+//!
+//! The comparisons use the layout of the original SVDAG paper (Kämpe, Sintorn
+//! and Assarsson 2013): every interior node is a 32-bit header plus one 32-bit
+//! pointer per child, every leaf a 64-bit 4³ mask. The SVO is the same layout
+//! without deduplication, i.e. every node once per path that reaches it.
+//!
+//! Tree-node counts come from propagating reference multiplicities top-down.
+//! A node has at most 8 pointers, so a level-`l` node occurs at most 8^l times
+//! (8^19 < 2^57 at the deepest leaf level): multiplicities fit a `u64`, and
+//! totals are summed in `u128`.
+
+use std::fmt;
+
+use crate::error::{ErrorCode, FormatError};
+use crate::layout::{self, AttributeKind};
+use crate::reader::{Dag, LevelSection, read_u32};
+
+/// Statistics of one level of a DAG.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LevelStats {
+    /// Level number (0 is the root; the last level holds the leaves).
+    pub level: u8,
+    /// Distinct nodes (or leaves) stored.
+    pub node_count: u64,
+    /// Bytes of the level's section.
+    pub bytes: u64,
+    /// Pointer width in bytes; 0 for the leaf level.
+    pub pointer_width: u8,
+    /// Nodes the level would hold in a tree without deduplication.
+    pub tree_nodes: u128,
+}
+
+impl LevelStats {
+    /// Tree nodes per stored node (1 when nothing was shared or the level is empty).
+    pub fn dedup_ratio(&self) -> f64 {
+        if self.node_count == 0 {
+            1.0
+        } else {
+            self.tree_nodes as f64 / self.node_count as f64
+        }
+    }
+}
+
+/// Statistics of a whole DAG.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DagStats {
+    /// Depth D.
+    pub depth: u8,
+    /// Attribute kind of the nodes.
+    pub attribute_kind: AttributeKind,
+    /// Set voxels (from the header).
+    pub voxel_count: u64,
+    /// Per level, root first.
+    pub levels: Vec<LevelStats>,
+    /// Bytes of the whole file.
+    pub file_bytes: u64,
+    /// Bytes of the level sections alone.
+    pub level_bytes: u64,
+    /// Stored nodes and leaves, all levels.
+    pub dag_nodes: u64,
+    /// Nodes and leaves of the equivalent tree, all levels.
+    pub tree_nodes: u128,
+    /// The same DAG in the classic SVDAG layout (32-bit headers and pointers, 64-bit leaves).
+    pub classic_svdag_bytes: u128,
+    /// The equivalent sparse voxel octree in the same 32-bit layout (no deduplication).
+    pub svo_bytes: u128,
+}
+
+impl DagStats {
+    /// Whole-DAG deduplication ratio: tree nodes per stored node.
+    pub fn dedup_ratio(&self) -> f64 {
+        if self.dag_nodes == 0 {
+            1.0
+        } else {
+            self.tree_nodes as f64 / self.dag_nodes as f64
+        }
+    }
+}
+
+impl fmt::Display for DagStats {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "depth {} ({}^3), attribute kind {}, {} voxels",
+            self.depth,
+            1u64 << self.depth,
+            self.attribute_kind.to_raw(),
+            self.voxel_count
+        )?;
+        writeln!(
+            f,
+            "{:>5} {:>14} {:>16} {:>5} {:>22} {:>12}",
+            "level", "nodes", "bytes", "width", "tree nodes", "dedup"
+        )?;
+        for l in &self.levels {
+            writeln!(
+                f,
+                "{:>5} {:>14} {:>16} {:>5} {:>22} {:>12.2}",
+                l.level,
+                l.node_count,
+                l.bytes,
+                l.pointer_width,
+                l.tree_nodes,
+                l.dedup_ratio()
+            )?;
+        }
+        writeln!(
+            f,
+            "nodes: {} stored, {} in the tree (x{:.2})",
+            self.dag_nodes,
+            self.tree_nodes,
+            self.dedup_ratio()
+        )?;
+        writeln!(
+            f,
+            "this file:          {:>22} bytes ({} in level sections)",
+            self.file_bytes, self.level_bytes
+        )?;
+        writeln!(
+            f,
+            "classic SVDAG:      {:>22} bytes",
+            self.classic_svdag_bytes
+        )?;
+        write!(f, "SVO (no dedup):     {:>22} bytes", self.svo_bytes)
+    }
+}
+
+/// Parses the records of an interior level in storage order: the word offset
+/// of each node. Fails on a record that runs past the section.
+fn node_starts(section: &LevelSection<'_>) -> Result<Vec<u32>, FormatError> {
+    let bytes = section.bytes;
+    let mut starts = Vec::with_capacity(
+        usize::try_from(section.node_count)
+            .unwrap_or(0)
+            .min(bytes.len() / 8),
+    );
+    let mut at = 0usize;
+    while at < bytes.len() {
+        let header = read_u32(bytes, at).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::TruncatedNode,
+                section.file_offset + at as u64,
+                format!(
+                    "node record at byte {at} of level {} is cut off",
+                    section.level
+                ),
+            )
+            .at_level(section.level)
+            .at_node(starts.len() as u64)
+        })?;
+        let size =
+            layout::node_record_size((header & 0xff).count_ones(), section.pointer_width) as usize;
+        if at + size > bytes.len() {
+            return Err(FormatError::new(
+                ErrorCode::TruncatedNode,
+                section.file_offset + at as u64,
+                format!(
+                    "node record at byte {at} of level {} runs past the end of its section",
+                    section.level
+                ),
+            )
+            .at_level(section.level)
+            .at_node(starts.len() as u64));
+        }
+        starts.push((at / 4) as u32);
+        at += size;
+    }
+    if starts.len() as u64 != section.node_count {
+        return Err(FormatError::new(
+            ErrorCode::ItemCountMismatch,
+            section.file_offset,
+            format!(
+                "level {} declares {} nodes but holds {}",
+                section.level,
+                section.node_count,
+                starts.len()
+            ),
+        )
+        .at_level(section.level));
+    }
+    Ok(starts)
+}
+
+/// Computes the statistics of `dag`. Linear in the file size; malformed
+/// structure (a record cut off, a pointer outside its level or into the middle
+/// of a record, a node count that differs from the records) is an error.
+pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
+    let sections = dag.levels();
+    let leaf_level = sections.len() - 1;
+    let mut levels = Vec::with_capacity(sections.len());
+    let mut classic = 0u128;
+    let mut svo = 0u128;
+    // How many times each node of the current level occurs in the tree.
+    let mut multiplicity: Vec<u64> = if dag.is_empty() { Vec::new() } else { vec![1] };
+    let mut starts = if leaf_level > 0 {
+        node_starts(&sections[0])?
+    } else {
+        Vec::new()
+    };
+    if starts.len() != multiplicity.len() && leaf_level > 0 {
+        return Err(FormatError::new(
+            ErrorCode::BadRootLevel,
+            sections[0].file_offset,
+            format!("the root level holds {} nodes", starts.len()),
+        )
+        .at_level(0));
+    }
+    for level in 0..leaf_level {
+        let child = &sections[level + 1];
+        // For a node level, maps word offsets to node indices (u32::MAX: not a record start).
+        let (child_starts, child_count, word_to_index) = if child.is_leaf {
+            (Vec::new(), child.node_count, Vec::new())
+        } else {
+            let child_starts = node_starts(child)?;
+            let mut map = vec![u32::MAX; child.bytes.len() / 4];
+            for (index, &word) in child_starts.iter().enumerate() {
+                map[word as usize] = index as u32;
+            }
+            let count = child_starts.len() as u64;
+            (child_starts, count, map)
+        };
+        let mut next = vec![0u64; child_count as usize];
+        for (index, (&word, &m)) in starts.iter().zip(&multiplicity).enumerate() {
+            let node = dag.node(level as u8, word)?;
+            let record = 4 + 4 * u128::from(node.child_count());
+            classic += record;
+            svo += record * u128::from(m);
+            for rank in 0..node.child_count() {
+                let pointer = node.pointer_at(rank);
+                let target = if child.is_leaf {
+                    (u64::from(pointer) < child_count).then_some(pointer as usize)
+                } else {
+                    match word_to_index.get(pointer as usize) {
+                        None => None,
+                        Some(&u32::MAX) => {
+                            return Err(FormatError::new(
+                                ErrorCode::PointerNotAtNode,
+                                sections[level].file_offset + u64::from(word) * 4,
+                                format!("pointer {pointer} does not address the start of a node of level {}", level + 1),
+                            )
+                            .at_level(level as u8)
+                            .at_node(index as u64));
+                        }
+                        Some(&i) => Some(i as usize),
+                    }
+                };
+                let Some(target) = target else {
+                    return Err(FormatError::new(
+                        ErrorCode::PointerOutOfRange,
+                        sections[level].file_offset + u64::from(word) * 4,
+                        format!(
+                            "pointer {pointer} lies outside level {} ({} units)",
+                            level + 1,
+                            child.units()
+                        ),
+                    )
+                    .at_level(level as u8)
+                    .at_node(index as u64));
+                };
+                next[target] = next[target].saturating_add(m);
+            }
+        }
+        let section = &sections[level];
+        levels.push(LevelStats {
+            level: level as u8,
+            node_count: starts.len() as u64,
+            bytes: section.bytes.len() as u64,
+            pointer_width: section.pointer_width,
+            tree_nodes: multiplicity.iter().map(|&m| u128::from(m)).sum(),
+        });
+        multiplicity = next;
+        starts = child_starts;
+    }
+    let leaves = &sections[leaf_level];
+    if multiplicity.len() as u64 != leaves.node_count {
+        return Err(FormatError::new(
+            ErrorCode::BadRootLevel,
+            leaves.file_offset,
+            format!(
+                "the root level is the leaf level and holds {} leaves",
+                leaves.node_count
+            ),
+        )
+        .at_level(0));
+    }
+    let tree_leaves: u128 = multiplicity.iter().map(|&m| u128::from(m)).sum();
+    classic += 8 * u128::from(leaves.node_count);
+    svo += 8 * tree_leaves;
+    levels.push(LevelStats {
+        level: leaf_level as u8,
+        node_count: leaves.node_count,
+        bytes: leaves.bytes.len() as u64,
+        pointer_width: 0,
+        tree_nodes: tree_leaves,
+    });
+    let header = dag.header();
+    Ok(DagStats {
+        depth: header.depth,
+        attribute_kind: header.attribute_kind,
+        voxel_count: header.voxel_count,
+        file_bytes: dag.bytes().len() as u64,
+        level_bytes: levels.iter().map(|l| l.bytes).sum(),
+        dag_nodes: levels.iter().map(|l| l.node_count).sum(),
+        tree_nodes: levels.iter().map(|l| l.tree_nodes).sum(),
+        classic_svdag_bytes: classic,
+        svo_bytes: svo,
+        levels,
+    })
+}

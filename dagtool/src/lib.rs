@@ -1,0 +1,26 @@
+//! `dagtool`'s library: the mesh-to-`.vdag` converter and the file commands.
+//!
+//! - [`geom`]: exact triangle/box predicates on a fixed-point lattice;
+//! - [`mesh`]: OBJ loading, the root cube, snapping;
+//! - [`voxelize`]: conservative surface voxelization of triangles into chunks;
+//! - [`solid`]: interior fill by exact crossing parity;
+//! - [`pipeline`]: binning, parallel chunked voxelization in Morton order;
+//! - [`voxlist`]: the text and binary voxel list formats;
+//! - [`convert`]: the `convert` command (pipeline + builder + atomic output);
+//! - [`output`]: atomic file output;
+//! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`.
+#![deny(missing_docs)]
+
+pub mod cmd;
+pub mod convert;
+pub mod error;
+pub mod geom;
+pub mod mesh;
+pub mod output;
+pub mod pipeline;
+pub mod solid;
+pub mod sysinfo;
+pub mod voxelize;
+pub mod voxlist;
+
+pub use error::ConvertError;

@@ -1,0 +1,18 @@
+//! dagtool's integration tests: one binary, one module per concern.
+//!
+//! The voxel sets the converter writes are compared with `reference`, an
+//! independent brute-force voxelizer (every voxel of a triangle's bounding box
+//! tested with the textbook Akenine-Möller triangle/box test), on procedural
+//! and real meshes; the command line is tested end to end through the binary.
+
+mod common;
+mod reference;
+
+mod chunking;
+mod cli_errors;
+mod colors;
+mod commands;
+mod meshes;
+mod solid;
+mod surface;
+mod voxel_lists;

@@ -1,0 +1,289 @@
+//! GPU versus CPU ray throughput on a `.vdag` file.
+//!
+//! ```text
+//! cargo run --release -p dagtrace --example gpu_bench -- FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N]
+//! ```
+//!
+//! Prints the adapter, the time to the first traced ray (open + device +
+//! upload + shader + one ray), then rays per second (median of the runs) for
+//! primary rays of a WxH image (default 1920x1080: made and traced on the GPU,
+//! an RGBA image written) and for random rays (prepared on the host, traced,
+//! read back), with the full and the short stack, and the same rays on the
+//! CPU tracer (all cores).
+
+#[cfg(feature = "gpu")]
+fn main() {
+    if let Err(e) = bench::run() {
+        eprintln!("gpu_bench: {e}");
+        std::process::exit(1);
+    }
+}
+
+#[cfg(not(feature = "gpu"))]
+fn main() {
+    eprintln!("gpu_bench: dagtrace was built without the `gpu` feature");
+    std::process::exit(1);
+}
+
+#[cfg(feature = "gpu")]
+mod bench {
+    use std::time::{Duration, Instant};
+
+    use dagfmt::Dag;
+    use dagfmt::batch::Ray;
+    use dagfmt::mmap::MappedFile;
+    use dagtrace::Tracer;
+    use dagtrace::camera::Camera;
+    use dagtrace::gpu::{AdapterChoice, GpuContext, GpuOptions, GpuTracer, StackMode};
+
+    struct Args {
+        path: String,
+        runs: usize,
+        cpu_runs: usize,
+        random: usize,
+        width: u32,
+        height: u32,
+    }
+
+    fn parse_args() -> Result<Args, String> {
+        let mut args = Args {
+            path: String::new(),
+            runs: 7,
+            cpu_runs: 3,
+            random: 1 << 20,
+            width: 1920,
+            height: 1080,
+        };
+        let mut it = std::env::args().skip(1);
+        let number = |v: Option<String>, what: &str| -> Result<usize, String> {
+            v.ok_or(format!("{what} needs a value"))?
+                .parse()
+                .map_err(|e| format!("{what}: {e}"))
+        };
+        while let Some(a) = it.next() {
+            match a.as_str() {
+                "--runs" => args.runs = number(it.next(), "--runs")?.max(1),
+                "--cpu-runs" => args.cpu_runs = number(it.next(), "--cpu-runs")?,
+                "--random" => args.random = number(it.next(), "--random")?,
+                "--size" => {
+                    let v = it.next().ok_or("--size needs WxH")?;
+                    let (w, h) = v.split_once('x').ok_or("--size needs WxH")?;
+                    args.width = w.parse().map_err(|e| format!("--size: {e}"))?;
+                    args.height = h.parse().map_err(|e| format!("--size: {e}"))?;
+                }
+                _ if a.starts_with('-') => return Err(format!("unknown option {a}")),
+                _ if args.path.is_empty() => args.path = a,
+                _ => return Err(format!("unexpected argument {a}")),
+            }
+        }
+        if args.path.is_empty() {
+            return Err(
+                "usage: gpu_bench FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N]"
+                    .into(),
+            );
+        }
+        Ok(args)
+    }
+
+    fn median(mut v: Vec<Duration>) -> Duration {
+        v.sort();
+        v[v.len() / 2]
+    }
+
+    fn rate(rays: usize, d: Duration) -> String {
+        let r = rays as f64 / d.as_secs_f64();
+        if r >= 1e9 {
+            format!("{:8.3} Grays/s", r / 1e9)
+        } else {
+            format!("{:8.2} Mrays/s", r / 1e6)
+        }
+    }
+
+    /// SplitMix64.
+    fn next(state: &mut u64) -> f64 {
+        *state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = *state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Rays from random points around the cube to random points inside it.
+    fn random_rays(dag: &Dag<'_>, count: usize) -> Vec<Ray> {
+        let h = dag.header();
+        let mut s = 42u64;
+        (0..count)
+            .map(|_| {
+                let from: [f64; 3] = std::array::from_fn(|i| {
+                    h.root_min[i] + h.root_size * (next(&mut s) * 2.0 - 0.5)
+                });
+                let to: [f64; 3] =
+                    std::array::from_fn(|i| h.root_min[i] + h.root_size * next(&mut s));
+                Ray::new(
+                    from.map(|v| v as f32),
+                    std::array::from_fn(|i| (to[i] - from[i]) as f32),
+                )
+            })
+            .collect()
+    }
+
+    pub fn run() -> Result<(), String> {
+        let args = parse_args()?;
+        let started = Instant::now();
+        let file =
+            MappedFile::open(args.path.as_ref()).map_err(|e| format!("{}: {e}", args.path))?;
+        let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", args.path))?;
+        let opened = started.elapsed();
+        let context = GpuContext::new(AdapterChoice::Default).map_err(|e| e.to_string())?;
+        let device_ready = started.elapsed();
+        let full = GpuTracer::with_context(&context, &dag, &GpuOptions::default())
+            .map_err(|e| e.to_string())?;
+        let uploaded = started.elapsed();
+        let first = random_rays(&dag, 1);
+        full.trace(&first).map_err(|e| e.to_string())?;
+        let first_ray = started.elapsed();
+        println!(
+            "file: {} ({} bytes, depth {})",
+            args.path,
+            dag.bytes().len(),
+            dag.depth()
+        );
+        println!("adapter: {}", context.adapter_name());
+        println!(
+            "time to first ray: {:.1} ms (open {:.1} ms, device {:.1} ms, upload + shader {:.1} ms, first trace {:.1} ms); {} bytes in {} binding(s)",
+            first_ray.as_secs_f64() * 1e3,
+            opened.as_secs_f64() * 1e3,
+            (device_ready - opened).as_secs_f64() * 1e3,
+            (uploaded - device_ready).as_secs_f64() * 1e3,
+            (first_ray - uploaded).as_secs_f64() * 1e3,
+            full.uploaded_bytes(),
+            full.binding_count(),
+        );
+        let short = GpuTracer::with_context(
+            &context,
+            &dag,
+            &GpuOptions {
+                stack: StackMode::Short(4),
+                ..GpuOptions::default()
+            },
+        )
+        .map_err(|e| e.to_string())?;
+        let (w, h) = (args.width, args.height);
+        let pixels = (w * h) as usize;
+        let header = dag.header();
+        let camera = Camera::looking_at_cube(
+            header.root_min,
+            header.root_size,
+            f64::from(w) / f64::from(h),
+        );
+        println!("primary rays, {w}x{h}, median of {} runs:", args.runs);
+        for (name, tracer) in [("GPU full stack ", &full), ("GPU short stack", &short)] {
+            // One warm-up run, then the timed ones.
+            let times = tracer
+                .time_render(&camera, w, h, args.runs + 1)
+                .map_err(|e| e.to_string())?;
+            let m = median(times[1..].to_vec());
+            println!(
+                "  {name}: {} ({:.2} ms)",
+                rate(pixels, m),
+                m.as_secs_f64() * 1e3
+            );
+        }
+        let cpu = Tracer::new(&dag)
+            .map_err(|e| e.to_string())?
+            .with_index(false);
+        let frame = camera.frame().map_err(|e| e.to_string())?;
+        if args.cpu_runs > 0 {
+            let rays = frame.rays(w, h, None);
+            let times: Vec<Duration> = (0..args.cpu_runs)
+                .map(|_| {
+                    let t0 = Instant::now();
+                    cpu.trace_batch(&rays)
+                        .map(|_| t0.elapsed())
+                        .map_err(|e| e.to_string())
+                })
+                .collect::<Result<_, _>>()?;
+            let m = median(times);
+            println!(
+                "  CPU ({} threads): {} ({:.2} ms)",
+                rayon::current_num_threads(),
+                rate(pixels, m),
+                m.as_secs_f64() * 1e3
+            );
+        }
+        if args.random > 0 {
+            let rays = random_rays(&dag, args.random);
+            println!(
+                "random rays, {} rays, median of {} runs (GPU: traversal / whole call incl. host set-up and read-back):",
+                rays.len(),
+                args.runs
+            );
+            let no_index = GpuOptions {
+                compute_index: false,
+                ..GpuOptions::default()
+            };
+            let tracers = [
+                (
+                    "GPU full stack ",
+                    GpuTracer::with_context(&context, &dag, &no_index)
+                        .map_err(|e| e.to_string())?,
+                ),
+                (
+                    "GPU short stack",
+                    GpuTracer::with_context(
+                        &context,
+                        &dag,
+                        &GpuOptions {
+                            stack: StackMode::Short(4),
+                            ..no_index
+                        },
+                    )
+                    .map_err(|e| e.to_string())?,
+                ),
+            ];
+            for (name, tracer) in &tracers {
+                let mut gpu = Vec::new();
+                let mut total = Vec::new();
+                let mut iterations = 0.0;
+                for _ in 0..args.runs {
+                    let (_, stats) = tracer.trace_with_stats(&rays).map_err(|e| e.to_string())?;
+                    gpu.push(stats.gpu_time);
+                    total.push(stats.total_time);
+                    iterations = stats.iterations as f64 / stats.gpu_rays.max(1) as f64;
+                }
+                println!(
+                    "  {name}: {} / {} ({:.1} loop iterations per traced ray)",
+                    rate(rays.len(), median(gpu)),
+                    rate(rays.len(), median(total)),
+                    iterations
+                );
+            }
+            if args.cpu_runs > 0 {
+                let cpu_rays: Vec<dagtrace::Ray> = rays
+                    .iter()
+                    .map(|r| dagtrace::Ray {
+                        origin: r.origin,
+                        dir: r.dir,
+                        tmin: r.tmin,
+                        tmax: r.tmax,
+                        level: r.level,
+                    })
+                    .collect();
+                let times: Vec<Duration> = (0..args.cpu_runs)
+                    .map(|_| {
+                        let t0 = Instant::now();
+                        cpu.trace_batch(&cpu_rays)
+                            .map(|_| t0.elapsed())
+                            .map_err(|e| e.to_string())
+                    })
+                    .collect::<Result<_, _>>()?;
+                println!(
+                    "  CPU ({} threads): {}",
+                    rayon::current_num_threads(),
+                    rate(rays.len(), median(times))
+                );
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,985 @@
+//! The GPU tracer: the CPU tracer's traversal as a WGSL compute shader (wgpu).
+//!
+//! [`GpuTracer::new`] uploads the DAG's level sections straight from the
+//! (memory-mapped) file bytes into GPU storage buffers, in bounded chunks;
+//! [`GpuTracer::trace`] traces a batch of [`dagfmt::batch::Ray`]s with the
+//! semantics of spec/VDAG.md and returns the same answers as
+//! [`crate::Tracer`]; [`GpuTracer::render`] makes and traces camera rays on
+//! the GPU.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use dagtrace::gpu::{GpuOptions, GpuTracer};
+//! let file = dagfmt::mmap::MappedFile::open("model.vdag".as_ref())?;
+//! let dag = dagfmt::Dag::open(file.bytes())?;
+//! let gpu = GpuTracer::new(&dag, &GpuOptions::default())?;
+//! let ray = dagfmt::batch::Ray::new([0.0, 0.5, 0.5], [1.0, 0.0, 0.0]);
+//! let hits = gpu.trace(&[ray])?;
+//! # Ok(()) }
+//! ```
+//!
+//! # How the work is split
+//!
+//! - Host (f64, `prepare.rs`): world to grid space, the rays that need no DAG
+//!   (NaN, empty interval, outside the cube, level 0), clipping, scaling and
+//!   mirroring exactly as the CPU tracer does; afterwards the entry parameter
+//!   and face of the cell found, in f64.
+//! - Shader (f32, `trace.wgsl`): the traversal, finding the cell, and the
+//!   dense attribute index of the hit (with a host-made table of the counts of
+//!   saturated nodes).
+//!
+//! The shader and the host share their records and constants through
+//! `layout.rs`, which generates the WGSL declarations.
+//!
+//! # Large DAGs and malformed files
+//!
+//! A DAG larger than one storage binding is spread over several bindings
+//! ("pages"); [`GpuOptions::max_binding_bytes`] forces small pages (to test
+//! this). Every shader read is bounds-checked by wgpu, a pointer leading
+//! outside its level stops the ray ([`GpuError::MalformedPointer`]), and a ray
+//! gives up after [`GpuOptions::max_iterations`] loop iterations
+//! ([`GpuError::IterationLimit`]), so no file can hang the GPU. Other damage a
+//! validator would catch gives wrong answers, not failures.
+
+mod layout;
+mod prepare;
+mod upload;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use dagfmt::batch::{Hit, Ray};
+use dagfmt::layout::AttributeKind;
+use dagfmt::{Dag, FormatError};
+use glam::DVec3;
+use wgpu::util::DeviceExt as _;
+
+use crate::camera::{Camera, CameraError};
+use layout::{
+    BATCH_WORKGROUP_SIZE, BINDING_HITS, BINDING_IMAGE, BINDING_PARAMS, BINDING_RAYS, GpuHit,
+    GpuParams, GpuRay, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_LEVEL_SHIFT, INFO_MALFORMED,
+    IO_STORAGE_BUFFERS, MAX_PAGES, MAX_STORED_LEVELS, OPTION_INDEX, OPTION_WRITE_HITS,
+    OPTION_WRITE_IMAGE, RENDER_TILE, ShaderConfig,
+};
+use prepare::{Frame, Setup};
+use upload::Placement;
+
+/// Why the GPU tracer cannot do what was asked.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    /// No wgpu adapter, not even a software one (for example, no Vulkan driver).
+    #[error("no GPU adapter (not even a software one such as Mesa's lavapipe)")]
+    NoAdapter,
+    /// The device could not be created, was lost, or a GPU operation failed.
+    #[error("GPU device error: {0}")]
+    Device(String),
+    /// The shader failed to compile (a bug, or an adapter lacking a WGSL feature).
+    #[error("GPU shader error: {0}")]
+    Shader(String),
+    /// The DAG does not fit the device.
+    #[error("the DAG is too large for the GPU: {0}")]
+    TooLarge(String),
+    /// The DAG is malformed where the host had to read it.
+    #[error("malformed DAG: {0}")]
+    Malformed(FormatError),
+    /// The shader met a child pointer leading outside its level.
+    #[error("malformed DAG: ray {ray} met a child pointer outside its level")]
+    MalformedPointer {
+        /// Index of the ray in the batch (or of the pixel).
+        ray: usize,
+    },
+    /// A ray needed more loop iterations than allowed.
+    #[error("ray {ray} exceeded the GPU iteration limit of {limit}")]
+    IterationLimit {
+        /// Index of the ray in the batch (or of the pixel).
+        ray: usize,
+        /// The limit.
+        limit: u32,
+    },
+    /// A ray asks for a level of detail deeper than the DAG.
+    #[error("ray {ray} asks for level {level}, deeper than the DAG's depth {depth}")]
+    LevelTooDeep {
+        /// Index of the ray in the batch.
+        ray: usize,
+        /// The level asked for.
+        level: u8,
+        /// The DAG's depth.
+        depth: u8,
+    },
+    /// Options that cannot work.
+    #[error("invalid GPU tracer options: {0}")]
+    InvalidOptions(String),
+    /// The camera cannot make rays.
+    #[error("{0}")]
+    Camera(#[from] CameraError),
+}
+
+/// Which adapter to use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum AdapterChoice {
+    /// The default (high-performance) adapter, falling back to a software one.
+    #[default]
+    Default,
+    /// Only a software adapter (such as lavapipe).
+    Software,
+}
+
+/// The traversal stack of the shader.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum StackMode {
+    /// One entry per level: no restarts.
+    #[default]
+    Full,
+    /// A ring of this many entries (a power of two, 1 to 16). When the
+    /// traversal returns to a level whose entry was overwritten, it restarts
+    /// from the root along the current path, recomputing the entries exactly;
+    /// answers are identical to [`StackMode::Full`]'s.
+    Short(u32),
+}
+
+/// How a [`GpuTracer`] is set up.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GpuOptions {
+    /// Adapter preference (used when the tracer makes its own context).
+    pub adapter: AdapterChoice,
+    /// The traversal stack.
+    pub stack: StackMode,
+    /// Largest storage binding to use, in bytes (the device's limit when
+    /// `None`). Lower it to force the DAG over several bindings.
+    pub max_binding_bytes: Option<u64>,
+    /// Loop iterations after which a ray gives up. `None`: a bound no ray of
+    /// a valid DAG reaches (it visits at most a few nodes per cell it crosses
+    /// on each level).
+    pub max_iterations: Option<u32>,
+    /// Rays per dispatch (bounds the GPU buffers of one batch step).
+    pub rays_per_dispatch: u32,
+    /// Whether hits carry the dense attribute index (attribute kind 1).
+    pub compute_index: bool,
+}
+
+impl Default for GpuOptions {
+    fn default() -> Self {
+        GpuOptions {
+            adapter: AdapterChoice::Default,
+            stack: StackMode::Full,
+            max_binding_bytes: None,
+            max_iterations: None,
+            rays_per_dispatch: 1 << 20,
+            compute_index: true,
+        }
+    }
+}
+
+/// A device and queue, with the compiled shaders cached. Cheap to clone;
+/// several tracers can share one.
+#[derive(Clone, Debug)]
+pub struct GpuContext {
+    inner: Arc<ContextInner>,
+}
+
+#[derive(Debug)]
+struct ContextInner {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    info: wgpu::AdapterInfo,
+    limits: wgpu::Limits,
+    io_layout: wgpu::BindGroupLayout,
+    /// Placeholder for the bindings an entry point does not use.
+    dummy: wgpu::Buffer,
+    pipelines: Mutex<HashMap<ShaderConfig, Arc<Pipelines>>>,
+}
+
+#[derive(Debug)]
+struct Pipelines {
+    pages_layout: wgpu::BindGroupLayout,
+    batch: wgpu::ComputePipeline,
+    render: wgpu::ComputePipeline,
+}
+
+fn device_error(e: impl std::fmt::Display) -> GpuError {
+    GpuError::Device(e.to_string())
+}
+
+impl GpuContext {
+    /// Opens an adapter (see [`AdapterChoice`]) and creates a device.
+    pub fn new(choice: AdapterChoice) -> Result<Self, GpuError> {
+        // The primary backends (Vulkan, Metal, DX12) have the compute features the
+        // shader needs; `WGPU_BACKEND` overrides the choice.
+        let descriptor = wgpu::InstanceDescriptor {
+            backends: wgpu::Backends::PRIMARY,
+            ..wgpu::InstanceDescriptor::new_without_display_handle()
+        };
+        let instance = wgpu::Instance::new(descriptor.with_env());
+        let request = |force_fallback_adapter| {
+            pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                force_fallback_adapter,
+                compatible_surface: None,
+                apply_limit_buckets: false,
+            }))
+        };
+        let adapter = match choice {
+            AdapterChoice::Default => request(false).or_else(|_| request(true)),
+            AdapterChoice::Software => request(true),
+        }
+        .map_err(|_| GpuError::NoAdapter)?;
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("vdag"),
+            required_limits: limits.clone(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            ..Default::default()
+        }))
+        .map_err(device_error)?;
+        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let io_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("vdag io"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: BINDING_PARAMS,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: wgpu::BufferSize::new(size_of::<GpuParams>() as u64),
+                    },
+                    count: None,
+                },
+                storage(BINDING_RAYS, true),
+                storage(BINDING_HITS, false),
+                storage(BINDING_IMAGE, false),
+            ],
+        });
+        let dummy = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("vdag placeholder"),
+            size: 256,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
+        Ok(GpuContext {
+            inner: Arc::new(ContextInner {
+                device,
+                queue,
+                info,
+                limits,
+                io_layout,
+                dummy,
+                pipelines: Mutex::new(HashMap::new()),
+            }),
+        })
+    }
+
+    /// The adapter in use.
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.inner.info
+    }
+
+    /// A one-line description of the adapter: name, type and backend.
+    pub fn adapter_name(&self) -> String {
+        let i = &self.inner.info;
+        format!("{} ({:?}, {:?})", i.name, i.device_type, i.backend)
+    }
+
+    /// Whether the adapter is a software one (runs on the CPU).
+    pub fn is_software(&self) -> bool {
+        self.inner.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The storage bindings available for the DAG's pages.
+    fn max_pages(&self) -> u32 {
+        self.inner
+            .limits
+            .max_storage_buffers_per_shader_stage
+            .saturating_sub(IO_STORAGE_BUFFERS)
+            .min(MAX_PAGES)
+    }
+
+    /// The largest storage binding the device allows, in bytes.
+    pub fn max_binding_bytes(&self) -> u64 {
+        self.inner
+            .limits
+            .max_storage_buffer_binding_size
+            .min(self.inner.limits.max_buffer_size)
+    }
+
+    /// The compiled pipelines for `config` (compiled once per context).
+    fn pipelines(&self, config: ShaderConfig) -> Result<Arc<Pipelines>, GpuError> {
+        let mut cache = self
+            .inner
+            .pipelines
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(p) = cache.get(&config) {
+            return Ok(p.clone());
+        }
+        let device = &self.inner.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("vdag trace.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(layout::shader_source(&config).into()),
+        });
+        let entries: Vec<wgpu::BindGroupLayoutEntry> = (0..config.pages)
+            .map(|binding| wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: true },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let pages_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("vdag pages"),
+            entries: &entries,
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("vdag"),
+            bind_group_layouts: &[Some(&self.inner.io_layout), Some(&pages_layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |entry| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let batch = pipeline("trace_batch");
+        let render = pipeline("render_primary");
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader(e.to_string()));
+        }
+        let p = Arc::new(Pipelines {
+            pages_layout,
+            batch,
+            render,
+        });
+        cache.insert(config, p.clone());
+        Ok(p)
+    }
+
+    /// Waits for the queue to drain.
+    fn wait(&self) -> Result<(), GpuError> {
+        self.inner
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(device_error)?;
+        Ok(())
+    }
+
+    /// Reads `size` bytes of `buffer` (which must have `COPY_SRC`) back to the host.
+    fn read_back(&self, buffer: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
+        let device = &self.inner.device;
+        let staging = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("vdag read-back"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder =
+            device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+        self.inner.queue.submit([encoder.finish()]);
+        let (sender, receiver) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = sender.send(r);
+        });
+        self.wait()?;
+        receiver
+            .recv()
+            .map_err(device_error)?
+            .map_err(device_error)?;
+        let bytes = staging.get_mapped_range(..).map_err(device_error)?.to_vec();
+        staging.unmap();
+        Ok(bytes)
+    }
+}
+
+/// Counters of one traced batch.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TraceStats {
+    /// Rays handed to the shader (the others were answered on the host).
+    pub gpu_rays: u64,
+    /// Time from submitting the dispatches to their completion (with the
+    /// copies of rays in and hits out).
+    pub gpu_time: Duration,
+    /// Time of the whole call.
+    pub total_time: Duration,
+    /// Sum of the traversal loop iterations of all rays.
+    pub iterations: u64,
+    /// Most iterations of one ray.
+    pub max_iterations: u32,
+}
+
+/// What [`GpuTracer::render`] returns.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderOutput {
+    /// One hit per pixel, rows from the top; `t` in world units along the
+    /// unit view ray. The attribute index is computed when asked for.
+    pub hits: Vec<Hit>,
+    /// RGBA8 pixels, rows from the top, shaded like the CPU renderer's
+    /// `Shade::Normal`.
+    pub rgba: Vec<u8>,
+}
+
+/// A DAG on the GPU, ready to trace.
+#[derive(Debug)]
+pub struct GpuTracer {
+    context: GpuContext,
+    pipelines: Arc<Pipelines>,
+    /// Keeps the page buffers alive for the bind group.
+    _pages: Vec<wgpu::Buffer>,
+    pages_group: wgpu::BindGroup,
+    frame: Frame,
+    base_params: GpuParams,
+    options: GpuOptions,
+    page_count: u32,
+    page_bytes: u64,
+    total_bytes: u64,
+}
+
+impl GpuTracer {
+    /// Makes a context ([`GpuContext::new`] with `options.adapter`) and
+    /// uploads `dag`.
+    pub fn new(dag: &Dag<'_>, options: &GpuOptions) -> Result<Self, GpuError> {
+        Self::with_context(&GpuContext::new(options.adapter)?, dag, options)
+    }
+
+    /// Uploads `dag` to the device of `context`.
+    pub fn with_context(
+        context: &GpuContext,
+        dag: &Dag<'_>,
+        options: &GpuOptions,
+    ) -> Result<Self, GpuError> {
+        let (stack_size, short_stack) = match options.stack {
+            StackMode::Full => (MAX_STORED_LEVELS as u32, false),
+            StackMode::Short(n) if n.is_power_of_two() && n <= 16 => (n, true),
+            StackMode::Short(n) => {
+                return Err(GpuError::InvalidOptions(format!(
+                    "short stack of {n} entries: must be a power of two from 1 to 16"
+                )));
+            }
+        };
+        if options.rays_per_dispatch == 0
+            || options.rays_per_dispatch > 65535 * BATCH_WORKGROUP_SIZE
+        {
+            return Err(GpuError::InvalidOptions(format!(
+                "{} rays per dispatch: must be 1 to {}",
+                options.rays_per_dispatch,
+                65535 * BATCH_WORKGROUP_SIZE
+            )));
+        }
+        let device_cap = context.max_binding_bytes();
+        let cap = options
+            .max_binding_bytes
+            .map_or(device_cap, |b| b.min(device_cap));
+        if cap < 16 {
+            return Err(GpuError::InvalidOptions(format!(
+                "a binding of {cap} bytes is too small"
+            )));
+        }
+        let saturated = upload::saturated_counts(dag)?;
+        let placement = Placement::new(dag, saturated, cap, context.max_pages().max(1))?;
+        let config = ShaderConfig {
+            stack_size,
+            short_stack,
+            pages: placement.pages,
+            page_shift: placement.page_shift(),
+        };
+        let pipelines = context.pipelines(config)?;
+        let device = &context.inner.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let pages: Vec<wgpu::Buffer> = (0..placement.pages)
+            .map(|page| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("vdag page"),
+                    size: placement.page_bytes(page),
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                })
+            })
+            .collect();
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::TooLarge(e.to_string()));
+        }
+        upload::upload(device, &context.inner.queue, &placement, dag, &pages)?;
+        let entries: Vec<wgpu::BindGroupEntry> = pages
+            .iter()
+            .enumerate()
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: b.as_entire_binding(),
+            })
+            .collect();
+        let pages_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("vdag pages"),
+            layout: &pipelines.pages_layout,
+            entries: &entries,
+        });
+        let header = dag.header();
+        let depth = header.depth;
+        let indexed = options.compute_index && header.attribute_kind == AttributeKind::VoxelCount;
+        let frame = Frame {
+            depth,
+            root_min: header.root_min,
+            grid_scale: (1u64 << depth) as f64 / header.root_size,
+            empty: dag.is_empty(),
+            indexed,
+        };
+        // Each node of a level is entered at most a few times per cell the ray
+        // crosses on that level (about 3 * 2^level cells); a short stack
+        // replays at most `depth` entries per return.
+        let default_limit =
+            (64u64 << depth).saturating_mul(if short_stack { u64::from(depth) } else { 1 });
+        let max_iterations = options
+            .max_iterations
+            .unwrap_or(default_limit.min(u64::from(u32::MAX)) as u32);
+        let base_params = GpuParams {
+            depth: u32::from(depth),
+            leaf_level: u32::from(depth - 2),
+            ray_count: 0,
+            max_iterations,
+            sat_base: placement.sat_base,
+            sat_count: placement.saturated.len() as u32,
+            options: if indexed { OPTION_INDEX } else { 0 },
+            render_level: u32::from(depth),
+            width: 0,
+            height: 0,
+            empty: u32::from(dag.is_empty()),
+            pad0: 0,
+            cam_origin: [0.0; 4],
+            cam_forward: [0.0; 4],
+            cam_right: [0.0; 4],
+            cam_up: [0.0; 4],
+            levels: placement.levels,
+        };
+        Ok(GpuTracer {
+            context: context.clone(),
+            pipelines,
+            _pages: pages,
+            pages_group,
+            frame,
+            base_params,
+            options: options.clone(),
+            page_count: placement.pages,
+            page_bytes: placement.page_words * 4,
+            total_bytes: placement.total_words * 4,
+        })
+    }
+
+    /// The context (device) this tracer runs on.
+    pub fn context(&self) -> &GpuContext {
+        &self.context
+    }
+
+    /// Storage bindings the DAG is spread over.
+    pub fn binding_count(&self) -> u32 {
+        self.page_count
+    }
+
+    /// Bytes per binding (the last may be smaller).
+    pub fn binding_bytes(&self) -> u64 {
+        self.page_bytes
+    }
+
+    /// Bytes uploaded: the level sections and the saturated-count table.
+    pub fn uploaded_bytes(&self) -> u64 {
+        self.total_bytes
+    }
+
+    /// The loop iteration bound of one ray.
+    pub fn max_iterations(&self) -> u32 {
+        self.base_params.max_iterations
+    }
+
+    /// Traces every ray: the same answers as [`crate::Tracer::trace_batch`].
+    pub fn trace(&self, rays: &[Ray]) -> Result<Vec<Hit>, GpuError> {
+        self.trace_with_stats(rays).map(|(hits, _)| hits)
+    }
+
+    /// [`GpuTracer::trace`] with timings and iteration counts.
+    pub fn trace_with_stats(&self, rays: &[Ray]) -> Result<(Vec<Hit>, TraceStats), GpuError> {
+        let started = Instant::now();
+        let mut stats = TraceStats::default();
+        let mut hits = vec![Hit::MISS; rays.len()];
+        // Set-up of every ray; `traced[k]` is the batch index of GPU ray k.
+        let mut gpu_rays = Vec::new();
+        let mut grids = Vec::new();
+        let mut traced = Vec::new();
+        for (i, ray) in rays.iter().enumerate() {
+            match prepare::setup(&self.frame, ray) {
+                Err(prepare::LevelTooDeep(level)) => {
+                    return Err(GpuError::LevelTooDeep {
+                        ray: i,
+                        level,
+                        depth: self.frame.depth,
+                    });
+                }
+                Ok(Setup::Done(hit)) => hits[i] = hit,
+                Ok(Setup::Trace(gpu, grid)) => {
+                    gpu_rays.push(gpu);
+                    grids.push(grid);
+                    traced.push(i);
+                }
+            }
+        }
+        let chunk = self.options.rays_per_dispatch as usize;
+        for (start, part) in (0..).step_by(chunk).zip(gpu_rays.chunks(chunk)) {
+            let t0 = Instant::now();
+            let results = self.dispatch_batch(part)?;
+            stats.gpu_time += t0.elapsed();
+            for (k, r) in results.iter().enumerate() {
+                let g = start + k;
+                let i = traced[g];
+                let info = r.cell[3];
+                stats.iterations += u64::from(r.iterations);
+                stats.max_iterations = stats.max_iterations.max(r.iterations);
+                if info & INFO_EXHAUSTED != 0 {
+                    return Err(GpuError::IterationLimit {
+                        ray: i,
+                        limit: self.base_params.max_iterations,
+                    });
+                }
+                if info & INFO_MALFORMED != 0 {
+                    return Err(GpuError::MalformedPointer { ray: i });
+                }
+                if info & INFO_HIT != 0 {
+                    let level = ((info >> INFO_LEVEL_SHIFT) & 0xff) as u8;
+                    let voxel = [r.cell[0], r.cell[1], r.cell[2]];
+                    let (t, face) = prepare::answer(self.frame.depth, &grids[g], voxel, level);
+                    let index = self
+                        .frame
+                        .indexed
+                        .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32);
+                    hits[i] = Hit {
+                        hit: true,
+                        t,
+                        voxel,
+                        level,
+                        face,
+                        index,
+                    };
+                }
+            }
+        }
+        stats.gpu_rays = gpu_rays.len() as u64;
+        stats.total_time = started.elapsed();
+        Ok((hits, stats))
+    }
+
+    /// Uniform buffer with `params`.
+    fn params_buffer(&self, params: &GpuParams) -> wgpu::Buffer {
+        self.context
+            .inner
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("vdag params"),
+                contents: bytemuck::bytes_of(params),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    fn io_group(
+        &self,
+        params: &wgpu::Buffer,
+        rays: &wgpu::Buffer,
+        hits: &wgpu::Buffer,
+        image: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
+        self.context
+            .inner
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("vdag io"),
+                layout: &self.context.inner.io_layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: BINDING_PARAMS,
+                        resource: params.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: BINDING_RAYS,
+                        resource: rays.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: BINDING_HITS,
+                        resource: hits.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: BINDING_IMAGE,
+                        resource: image.as_entire_binding(),
+                    },
+                ],
+            })
+    }
+
+    /// Traces one dispatch worth of prepared rays.
+    fn dispatch_batch(&self, rays: &[GpuRay]) -> Result<Vec<GpuHit>, GpuError> {
+        let inner = &self.context.inner;
+        let device = &inner.device;
+        let params = GpuParams {
+            ray_count: rays.len() as u32,
+            ..self.base_params
+        };
+        let params = self.params_buffer(&params);
+        let scope = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let ray_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("vdag rays"),
+            contents: bytemuck::cast_slice(rays),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let hit_bytes = (rays.len() * size_of::<GpuHit>()) as u64;
+        let hit_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("vdag hits"),
+            size: hit_bytes,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Device(e.to_string()));
+        }
+        let group = self.io_group(&params, &ray_buffer, &hit_buffer, &inner.dummy);
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("vdag batch"),
+        });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: None,
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipelines.batch);
+            pass.set_bind_group(0, &group, &[]);
+            pass.set_bind_group(1, &self.pages_group, &[]);
+            pass.dispatch_workgroups((rays.len() as u32).div_ceil(BATCH_WORKGROUP_SIZE), 1, 1);
+        }
+        inner.queue.submit([encoder.finish()]);
+        let bytes = self.context.read_back(&hit_buffer, hit_bytes)?;
+        Ok(bytemuck::pod_collect_to_vec(&bytes))
+    }
+
+    /// Camera parameters in grid space.
+    fn camera_params(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        level: Option<u8>,
+    ) -> Result<GpuParams, GpuError> {
+        camera.frame()?;
+        if width == 0
+            || height == 0
+            || width.div_ceil(RENDER_TILE) > 65535
+            || height.div_ceil(RENDER_TILE) > 65535
+        {
+            return Err(GpuError::InvalidOptions(format!(
+                "cannot render a {width} x {height} image"
+            )));
+        }
+        let depth = self.frame.depth;
+        let level = match level {
+            None => depth,
+            Some(l) if (1..=depth).contains(&l) => l,
+            Some(l) => {
+                return Err(GpuError::LevelTooDeep {
+                    ray: 0,
+                    level: l,
+                    depth,
+                });
+            }
+        };
+        // The same frame as `Camera::frame` (which keeps its fields private).
+        let origin = DVec3::from_array(camera.position);
+        let forward = (DVec3::from_array(camera.look_at) - origin).normalize();
+        let mut right = forward
+            .cross(DVec3::from_array(camera.up))
+            .normalize_or_zero();
+        if right == DVec3::ZERO {
+            right = forward.any_orthonormal_vector();
+        }
+        let up = right.cross(forward);
+        let tan_half = (camera.fov_y_degrees.to_radians() * 0.5).tan();
+        let aspect = f64::from(width) / f64::from(height);
+        let grid = DVec3::from_array(std::array::from_fn(|i| {
+            (camera.position[i] - self.frame.root_min[i]) * self.frame.grid_scale
+        }));
+        let v4 = |v: DVec3, w: f64| [v.x as f32, v.y as f32, v.z as f32, w as f32];
+        Ok(GpuParams {
+            ray_count: width * height,
+            width,
+            height,
+            render_level: u32::from(level),
+            cam_origin: v4(grid, 1.0 / self.frame.grid_scale),
+            cam_forward: v4(forward, 0.0),
+            cam_right: v4(right * tan_half * aspect, 0.0),
+            cam_up: v4(up * tan_half, 0.0),
+            ..self.base_params
+        })
+    }
+
+    /// Records the render of `params` into `encoder`.
+    fn encode_render(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        group: &wgpu::BindGroup,
+        params: &GpuParams,
+    ) {
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: None,
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipelines.render);
+        pass.set_bind_group(0, group, &[]);
+        pass.set_bind_group(1, &self.pages_group, &[]);
+        pass.dispatch_workgroups(
+            params.width.div_ceil(RENDER_TILE),
+            params.height.div_ceil(RENDER_TILE),
+            1,
+        );
+    }
+
+    fn render_buffers(
+        &self,
+        pixels: u64,
+        hits: bool,
+        image: bool,
+    ) -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+        let device = &self.context.inner.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let make = |label, size| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            })
+        };
+        let hit_buffer = make(
+            "vdag render hits",
+            if hits {
+                pixels * size_of::<GpuHit>() as u64
+            } else {
+                256
+            },
+        );
+        let image_buffer = make("vdag image", if image { pixels * 4 } else { 256 });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Device(e.to_string()));
+        }
+        Ok((hit_buffer, image_buffer))
+    }
+
+    /// Renders a `width` x `height` image through `camera` at `level`
+    /// (`None` = full depth), making the primary rays on the GPU (f32).
+    pub fn render(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        level: Option<u8>,
+    ) -> Result<RenderOutput, GpuError> {
+        let mut params = self.camera_params(camera, width, height, level)?;
+        params.options |= OPTION_WRITE_HITS | OPTION_WRITE_IMAGE;
+        let pixels = u64::from(width) * u64::from(height);
+        let (hit_buffer, image_buffer) = self.render_buffers(pixels, true, true)?;
+        let params_buffer = self.params_buffer(&params);
+        let group = self.io_group(
+            &params_buffer,
+            &self.context.inner.dummy,
+            &hit_buffer,
+            &image_buffer,
+        );
+        let device = &self.context.inner.device;
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("vdag render"),
+        });
+        self.encode_render(&mut encoder, &group, &params);
+        self.context.inner.queue.submit([encoder.finish()]);
+        let raw: Vec<GpuHit> =
+            bytemuck::pod_collect_to_vec(&self.context.read_back(&hit_buffer, pixels * 32)?);
+        let rgba = self.context.read_back(&image_buffer, pixels * 4)?;
+        let mut hits = Vec::with_capacity(raw.len());
+        for (i, r) in raw.iter().enumerate() {
+            let info = r.cell[3];
+            if info & INFO_EXHAUSTED != 0 {
+                return Err(GpuError::IterationLimit {
+                    ray: i,
+                    limit: params.max_iterations,
+                });
+            }
+            if info & INFO_MALFORMED != 0 {
+                return Err(GpuError::MalformedPointer { ray: i });
+            }
+            hits.push(if info & INFO_HIT == 0 {
+                Hit::MISS
+            } else {
+                Hit {
+                    hit: true,
+                    t: r.t,
+                    voxel: [r.cell[0], r.cell[1], r.cell[2]],
+                    level: ((info >> INFO_LEVEL_SHIFT) & 0xff) as u8,
+                    face: ((info >> INFO_FACE_SHIFT) & 0xff) as u8,
+                    index: self
+                        .frame
+                        .indexed
+                        .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32),
+                }
+            });
+        }
+        Ok(RenderOutput { hits, rgba })
+    }
+
+    /// Times `runs` renders of a `width` x `height` image (primary rays made
+    /// and traced on the GPU, an RGBA image written, no attribute index, nothing
+    /// read back): the wall time of each submission until the GPU is done.
+    pub fn time_render(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        runs: usize,
+    ) -> Result<Vec<Duration>, GpuError> {
+        let mut params = self.camera_params(camera, width, height, None)?;
+        params.options = OPTION_WRITE_IMAGE;
+        let (hit_buffer, image_buffer) =
+            self.render_buffers(u64::from(width) * u64::from(height), false, true)?;
+        let params_buffer = self.params_buffer(&params);
+        let group = self.io_group(
+            &params_buffer,
+            &self.context.inner.dummy,
+            &hit_buffer,
+            &image_buffer,
+        );
+        let device = &self.context.inner.device;
+        let mut times = Vec::with_capacity(runs);
+        for _ in 0..runs {
+            let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("vdag render"),
+            });
+            self.encode_render(&mut encoder, &group, &params);
+            let t0 = Instant::now();
+            self.context.inner.queue.submit([encoder.finish()]);
+            self.context.wait()?;
+            times.push(t0.elapsed());
+        }
+        Ok(times)
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,257 @@
+//! Host-side set-up of batch rays (f64) and the final answer (f64).
+//!
+//! The set-up is the CPU tracer's (`tracer.rs`, `Tracer::setup`) step for
+//! step, so that the shader's f32 traversal starts from the very same numbers
+//! and finds the same cell: world to grid space in f64, rays that cannot hit
+//! answered here (NaN, `tmin > tmax`, outside the cube, level 0), direction
+//! components below 2^-60 of the largest treated as zero, the ray clipped to the
+//! root cube, its direction scaled by a power of two (exact), far origins moved
+//! to the entry point, and the frame mirrored so that every direction component
+//! is non-negative. A ray with no direction becomes a point query, sent to
+//! the shader as the centre of the cell that holds it (found here in f64), so
+//! the shader's descent ends in the cell the CPU's f64 `floor` picks.
+//!
+//! The reported entry parameter and face are computed here in f64 from the
+//! grid-space ray and the cell the shader found, again as the CPU tracer does.
+
+use super::layout::{GpuRay, TINY_DIRECTION_INVERSE};
+use dagfmt::batch::{Hit, Ray};
+
+/// Direction components below this fraction of the largest count as zero.
+const TINY_DIRECTION: f64 = 1.0 / (1u64 << 60) as f64;
+
+/// What the shader needs to know about the DAG to set rays up.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Frame {
+    pub depth: u8,
+    pub root_min: [f64; 3],
+    /// Grid units per world unit: 2^D / root_size.
+    pub grid_scale: f64,
+    pub empty: bool,
+    /// Whether hits carry a dense index (attribute kind 1 and asked for).
+    pub indexed: bool,
+}
+
+/// The ray in f64 grid space, kept for the final answer.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct GridRay {
+    pub origin: [f64; 3],
+    /// Direction with negligible components set to zero.
+    pub dir: [f64; 3],
+    pub tmin: f64,
+    pub tmax: f64,
+    /// Tolerance of the ray/hit semantics in grid units.
+    pub eps: f64,
+}
+
+/// The outcome of setting a ray up.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Setup {
+    /// Answered without the DAG.
+    Done(Hit),
+    /// To be traced by the shader.
+    Trace(GpuRay, GridRay),
+}
+
+/// A ray whose level of detail is deeper than the DAG.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct LevelTooDeep(pub u8);
+
+/// Sets `ray` up for the shader (see the module documentation).
+pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
+    let depth = frame.depth;
+    let level = match ray.level {
+        None => depth,
+        Some(l) if l <= depth => l,
+        Some(l) => return Err(LevelTooDeep(l)),
+    };
+    let has_nan = ray
+        .origin
+        .iter()
+        .chain(&ray.dir)
+        .chain([&ray.tmin, &ray.tmax])
+        .any(|v| v.is_nan());
+    if has_nan || ray.tmin > ray.tmax || frame.empty {
+        return Ok(Setup::Done(Hit::MISS));
+    }
+    let origin: [f64; 3] =
+        std::array::from_fn(|i| (f64::from(ray.origin[i]) - frame.root_min[i]) * frame.grid_scale);
+    let mut dir = ray.dir.map(|d| f64::from(d) * frame.grid_scale);
+    if origin.iter().chain(&dir).any(|v| !v.is_finite()) {
+        return Ok(Setup::Done(Hit::MISS));
+    }
+    let resolution = (1u64 << depth) as f64;
+    let max_origin = origin.iter().fold(0f64, |m, v| m.max(v.abs()));
+    let eps = 2f64.powi(-12) + 2f64.powi(-21) * resolution.max(max_origin);
+    let largest = dir.iter().fold(0f64, |m, v| m.max(v.abs()));
+    let (tmin, tmax) = (f64::from(ray.tmin), f64::from(ray.tmax));
+    if largest < f64::MIN_POSITIVE {
+        // No direction: the ray is the point `origin`.
+        let inside = origin.iter().all(|&o| (0.0..=resolution).contains(&o));
+        let grid = GridRay {
+            origin,
+            dir: [0.0; 3],
+            tmin,
+            tmax,
+            eps,
+        };
+        if !inside {
+            return Ok(Setup::Done(Hit::MISS));
+        }
+        if level == 0 {
+            return Ok(Setup::Done(root_hit(frame, &grid)));
+        }
+        let size = (1u64 << (depth - level)) as f64;
+        let last = (1u64 << level) - 1;
+        let centre = origin.map(|o| (((o / size).floor() as u64).min(last) as f64 + 0.5) * size);
+        let gpu = GpuRay {
+            origin: [centre[0] as f32, centre[1] as f32, centre[2] as f32, 0.0],
+            inv_dir: [
+                TINY_DIRECTION_INVERSE,
+                TINY_DIRECTION_INVERSE,
+                TINY_DIRECTION_INVERSE,
+                0.0,
+            ],
+            octant: 0,
+            level: u32::from(level),
+            flags: 0,
+            pad0: 0,
+        };
+        return Ok(Setup::Trace(gpu, grid));
+    }
+    for d in &mut dir {
+        if d.abs() < largest * TINY_DIRECTION {
+            *d = 0.0;
+        }
+    }
+    let grid = GridRay {
+        origin,
+        dir,
+        tmin,
+        tmax,
+        eps,
+    };
+    let Some((enter, exit)) = slab(&origin, &dir, [0.0; 3], [resolution; 3]) else {
+        return Ok(Setup::Done(Hit::MISS));
+    };
+    let (start, end) = (tmin.max(enter), tmax.min(exit));
+    if !(start <= end) {
+        return Ok(Setup::Done(Hit::MISS));
+    }
+    if level == 0 {
+        return Ok(Setup::Done(root_hit(frame, &grid)));
+    }
+    // A power of two (exact scaling) that brings the largest component to [1, 2).
+    let scale = f64::from_bits(largest.to_bits() & 0x7ff0_0000_0000_0000);
+    let base = if max_origin > resolution * 16.0 {
+        start
+    } else {
+        0.0
+    };
+    let mut octant = 0u32;
+    let mut o32 = [0f32; 3];
+    let mut inv32 = [0f32; 3];
+    for i in 0..3 {
+        let mut o = origin[i] + base * dir[i];
+        let mut d = dir[i] / scale;
+        if d < 0.0 {
+            octant |= 1 << i;
+            o = resolution - o;
+            d = -d;
+        }
+        o32[i] = o as f32;
+        inv32[i] = if d == 0.0 {
+            TINY_DIRECTION_INVERSE
+        } else {
+            (1.0 / d) as f32
+        };
+    }
+    let gpu = GpuRay {
+        origin: [o32[0], o32[1], o32[2], ((start - base) * scale) as f32],
+        inv_dir: [inv32[0], inv32[1], inv32[2], ((end - base) * scale) as f32],
+        octant,
+        level: u32::from(level),
+        flags: 0,
+        pad0: 0,
+    };
+    Ok(Setup::Trace(gpu, grid))
+}
+
+/// The level-0 answer: the root cell itself.
+fn root_hit(frame: &Frame, grid: &GridRay) -> Hit {
+    let (t, face) = answer(frame.depth, grid, [0; 3], 0);
+    Hit {
+        hit: true,
+        t,
+        voxel: [0; 3],
+        level: 0,
+        face,
+        index: frame.indexed.then_some(0),
+    }
+}
+
+/// Entry parameter and face of the grid ray into cell `cell` of `level`, in
+/// f64. The traversal is exact up to f32 rounding, so the cell may be missed
+/// by a hair; then the cell grown by the tolerance is used.
+pub(crate) fn answer(depth: u8, grid: &GridRay, cell: [u32; 3], level: u8) -> (f32, u8) {
+    let s = (1u64 << (depth - level)) as f64;
+    let lo = cell.map(|c| f64::from(c) * s);
+    let hi = lo.map(|v| v + s);
+    let entry = entry(grid, lo, hi)
+        .or_else(|| entry(grid, lo.map(|v| v - grid.eps), hi.map(|v| v + grid.eps)));
+    let (t, face) = entry.unwrap_or_else(|| {
+        // Not met even by the grown cell (only for a malformed file).
+        let (near, face) = near_face(grid, lo, hi);
+        (grid.tmin.max(near).min(grid.tmax), face)
+    });
+    (t as f32, face)
+}
+
+/// Slab test of the line `o + t d` against the closed box `[lo, hi]`, zero
+/// direction components giving all or nothing: `(t_near, t_far)` when the
+/// slabs overlap.
+fn slab(o: &[f64; 3], d: &[f64; 3], lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, f64)> {
+    let (mut near, mut far) = (f64::NEG_INFINITY, f64::INFINITY);
+    for i in 0..3 {
+        if d[i] == 0.0 {
+            if o[i] < lo[i] || o[i] > hi[i] {
+                return None;
+            }
+        } else {
+            let a = (lo[i] - o[i]) / d[i];
+            let b = (hi[i] - o[i]) / d[i];
+            near = near.max(a.min(b));
+            far = far.min(a.max(b));
+        }
+    }
+    (near <= far).then_some((near, far))
+}
+
+/// The slab entry parameter and entry face of a box (without checking that
+/// the ray meets it).
+fn near_face(grid: &GridRay, lo: [f64; 3], hi: [f64; 3]) -> (f64, u8) {
+    let mut near = f64::NEG_INFINITY;
+    let mut face = 0u8;
+    for i in 0..3 {
+        let d = grid.dir[i];
+        if d != 0.0 {
+            let n = ((lo[i] - grid.origin[i]) / d).min((hi[i] - grid.origin[i]) / d);
+            if n > near {
+                near = n;
+                face = 1 + 2 * i as u8 + u8::from(d < 0.0);
+            }
+        }
+    }
+    (near, if near < grid.tmin { 0 } else { face })
+}
+
+/// Entry parameter and face of the grid ray into the closed box `[lo, hi]`.
+fn entry(grid: &GridRay, lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, u8)> {
+    let (near, far) = slab(&grid.origin, &grid.dir, lo, hi)?;
+    let t = grid.tmin.max(near);
+    if t > grid.tmax.min(far) {
+        return None;
+    }
+    let (_, face) = near_face(grid, lo, hi);
+    Some((t, face))
+}

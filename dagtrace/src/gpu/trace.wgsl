@@ -1,0 +1,544 @@
+// The GPU traversal of a .vdag sparse voxel DAG.
+//
+// Preceded by a preamble generated from dagtrace/src/gpu/layout.rs (shared
+// structs, constants, bindings and `load_word`).
+//
+// The traversal is the CPU tracer's (dagtrace/src/tracer.rs), operation for
+// operation, so that both find the same cell:
+// - the ray is in grid space, mirrored so that every direction component is
+//   non-negative (bit i of `octant` set when axis i is mirrored); cell
+//   coordinates (`idx`) are mirrored too, child index bits are the file's
+//   XOR the octant;
+// - at a node, the entry/exit parameters and the three mid-plane crossings
+//   come from exact plane positions, t = (p - o) * inv_dir; the children the
+//   ray passes through form a chain (entry child, then one axis flipped per
+//   mid-plane crossing, in crossing order), computed by `chain` (the CPU looks
+//   the same chain up in a table), ANDed with the (mirrored) child mask, and
+//   visited in increasing mirrored index, which is chain order;
+// - the child pointer is found by rank (popcount of the lower mask bits);
+// - the last two levels (the 4^3 brick of a leaf) come from the 64-bit mask.
+//
+// Stack: one entry (node word address, child mask | remaining chain << 8) per
+// interior level. With SHORT_STACK the stack is a ring of STACK_SIZE entries;
+// when the traversal pops to a level whose entry was overwritten, it restarts
+// from the root and replays the path to that level (the path is the current
+// cell's coordinate bits): every node on the way is evaluated with the same
+// arithmetic as before, so the recomputed remaining-children masks (minus the
+// children already done) are exactly what the full stack held, and both
+// variants return identical answers.
+
+struct Prepared {
+    o: vec3<f32>,
+    inv: vec3<f32>,
+    tmin: f32,
+    tmax: f32,
+    neg: u32,
+    level: u32,
+}
+
+struct Found {
+    hit: bool,
+    // Mirrored cell coordinates at `level`.
+    cell: vec3<u32>,
+    level: u32,
+    status: u32,
+    iterations: u32,
+}
+
+fn max3(v: vec3<f32>) -> f32 {
+    return max(v.x, max(v.y, v.z));
+}
+
+fn min3(v: vec3<f32>) -> f32 {
+    return min(v.x, min(v.y, v.z));
+}
+
+// The per-axis bits of child index j (1 = upper half).
+fn axis_bits(j: u32) -> vec3<u32> {
+    return vec3<u32>(j & 1u, (j >> 1u) & 1u, (j >> 2u) & 1u);
+}
+
+// Child mask in the mirrored frame: bit j = bit (j ^ neg) of m.
+fn mirror_mask(m: u32, neg: u32) -> u32 {
+    var r = m;
+    r = select(r, ((r & 0x55u) << 1u) | ((r >> 1u) & 0x55u), (neg & 1u) != 0u);
+    r = select(r, ((r & 0x33u) << 2u) | ((r >> 2u) & 0x33u), (neg & 2u) != 0u);
+    r = select(r, ((r & 0x0fu) << 4u) | ((r >> 4u) & 0x0fu), (neg & 4u) != 0u);
+    return r;
+}
+
+// The children (mirrored-frame mask) a ray passes through inside a node it
+// enters at `te` and leaves at `tx`, crossing the mid-planes at `tm`. Same
+// semantics as the CPU tracer's CHAIN table: an axis whose crossing is at or
+// before the entry starts in the upper half (a point on a boundary belongs to
+// the cell the ray moves into); an axis is crossed when te < tm <= tx (a
+// crossing exactly at the exit still touches the next, closed, child);
+// crossings are ordered by time, ties going to the higher axis.
+fn chain(te: f32, tx: f32, tm: vec3<f32>) -> u32 {
+    let first = tm <= vec3<f32>(te);
+    let crossing = (tm > vec3<f32>(te)) & (tm <= vec3<f32>(tx));
+    let c0 = select(0u, 1u, first.x) | select(0u, 2u, first.y) | select(0u, 4u, first.z);
+    // The crossing axes that come before each axis.
+    let before_x = select(0u, 2u, crossing.y && tm.y <= tm.x) | select(0u, 4u, crossing.z && tm.z <= tm.x);
+    let before_y = select(0u, 1u, crossing.x && tm.x < tm.y) | select(0u, 4u, crossing.z && tm.z <= tm.y);
+    let before_z = select(0u, 1u, crossing.x && tm.x < tm.z) | select(0u, 2u, crossing.y && tm.y < tm.z);
+    var m = 1u << c0;
+    m |= select(0u, 1u << (c0 | before_x | 1u), crossing.x);
+    m |= select(0u, 1u << (c0 | before_y | 2u), crossing.y);
+    m |= select(0u, 1u << (c0 | before_z | 4u), crossing.z);
+    return m;
+}
+
+// Bit k set when byte k of w is non-zero (k in 0..4).
+fn byte_flags(w: u32) -> u32 {
+    var t = w | (w >> 4u);
+    t |= t >> 2u;
+    t |= t >> 1u;
+    return (t & 1u) | ((t >> 7u) & 2u) | ((t >> 14u) & 4u) | ((t >> 21u) & 8u);
+}
+
+// Pointer number `rank` of the node record at word address `node`, of `width`
+// bytes (1 to 4), little-endian; a 3-byte pointer may straddle two words.
+fn fetch_pointer(node: u32, rank: u32, width: u32) -> u32 {
+    let bit = rank * width * 8u;
+    let a = node + 1u + (bit >> 5u);
+    let shift = bit & 31u;
+    var v = load_word(a) >> shift;
+    if (shift + width * 8u > 32u) {
+        v |= load_word(a + 1u) << (32u - shift);
+    }
+    if (width < 4u) {
+        v &= (1u << (width * 8u)) - 1u;
+    }
+    return v;
+}
+
+struct BrickHit {
+    hit: bool,
+    cell: vec3<u32>,
+}
+
+// The first set sub-brick (level D-1) or voxel (level D) of the 4^3 brick at
+// word address `leaf`, at mirrored brick coordinates `idx`.
+fn brick(p: Prepared, leaf: u32, idx: vec3<u32>) -> BrickHit {
+    var r: BrickHit;
+    r.hit = false;
+    let w0 = load_word(leaf);
+    let w1 = load_word(leaf + 1u);
+    let lo = vec3<f32>(idx) * 4.0;
+    let t0 = (lo - p.o) * p.inv;
+    let t1 = (lo + vec3<f32>(1.0) - p.o) * p.inv;
+    let t2 = (lo + vec3<f32>(2.0) - p.o) * p.inv;
+    let t3 = (lo + vec3<f32>(3.0) - p.o) * p.inv;
+    let t4 = (lo + vec3<f32>(4.0) - p.o) * p.inv;
+    let te = max(max3(t0), p.tmin);
+    let tx = min(min3(t4), p.tmax);
+    if (te > tx) {
+        return r;
+    }
+    let subs = byte_flags(w0) | (byte_flags(w1) << 4u);
+    var remaining = chain(te, tx, t2) & mirror_mask(subs, p.neg);
+    loop {
+        if (remaining == 0u) {
+            break;
+        }
+        let m = countTrailingZeros(remaining);
+        remaining &= remaining - 1u;
+        let sub = m ^ p.neg;
+        let up = axis_bits(m);
+        let sub_idx = idx * 2u + up;
+        if (p.level < params.depth) {
+            r.hit = true;
+            r.cell = sub_idx;
+            return r;
+        }
+        let upper = up != vec3<u32>(0u);
+        let s_lo = select(t0, t2, upper);
+        let s_mid = select(t1, t3, upper);
+        let s_hi = select(t2, t4, upper);
+        let se = max(max3(s_lo), p.tmin);
+        let sx = min(min3(s_hi), p.tmax);
+        if (se > sx) {
+            continue;
+        }
+        let word = select(w0, w1, sub >= 4u);
+        let voxels = (word >> (8u * (sub & 3u))) & 0xffu;
+        let chain_voxels = chain(se, sx, s_mid) & mirror_mask(voxels, p.neg);
+        if (chain_voxels != 0u) {
+            r.hit = true;
+            r.cell = sub_idx * 2u + axis_bits(countTrailingZeros(chain_voxels));
+            return r;
+        }
+    }
+    return r;
+}
+
+// Bits of the path of mirrored cell `path` at coordinate bit `shift`, as a child index.
+fn path_child(path: vec3<u32>, shift: u32) -> u32 {
+    let b = (path >> vec3<u32>(shift)) & vec3<u32>(1u);
+    return b.x | (b.y << 1u) | (b.z << 2u);
+}
+
+// The front-to-back traversal: the first occupied cell at level p.level.
+fn traverse(p: Prepared) -> Found {
+    var f: Found;
+    f.hit = false;
+    f.status = 0u;
+    f.iterations = 0u;
+    let depth = params.depth;
+    let leaf_level = params.leaf_level;
+    if (leaf_level == 0u) {
+        let b = brick(p, params.levels[0].x, vec3<u32>(0u));
+        f.hit = b.hit;
+        f.cell = b.cell;
+        f.level = p.level;
+        f.iterations = 1u;
+        return f;
+    }
+    var stack: array<vec2<u32>, STACK_SIZE>;
+    var level = 0u;
+    var idx = vec3<u32>(0u);
+    var addr = params.levels[0].x;
+    var enter = true;
+    // Short stack: the level whose entry is being rebuilt, the cell whose
+    // path is replayed, and the lowest level whose entry is still valid.
+    var replay_to = NO_REPLAY;
+    var path = vec3<u32>(0u);
+    var bottom = 0u;
+    var iterations = 0u;
+    loop {
+        iterations += 1u;
+        if (iterations > params.max_iterations) {
+            f.status = INFO_EXHAUSTED;
+            break;
+        }
+        var node = 0u;
+        var mask = 0u;
+        var remaining = 0u;
+        var forced = false;
+        var j = 0u;
+        if (enter) {
+            enter = false;
+            node = addr;
+            mask = load_word(addr) & 0xffu;
+            let size = f32(1u << (depth - level));
+            let lo = vec3<f32>(idx) * size;
+            let t_lo = (lo - p.o) * p.inv;
+            let t_mid = (lo + vec3<f32>(size * 0.5) - p.o) * p.inv;
+            let t_hi = (lo + vec3<f32>(size) - p.o) * p.inv;
+            let te = max(max3(t_lo), p.tmin);
+            let tx = min(min3(t_hi), p.tmax);
+            if (te <= tx) {
+                remaining = chain(te, tx, t_mid) & mirror_mask(mask, p.neg);
+            }
+            if (SHORT_STACK) {
+                if (level >= bottom + STACK_SIZE) {
+                    bottom = level + 1u - STACK_SIZE;
+                }
+                if (replay_to != NO_REPLAY) {
+                    // Children up to the one on the path are done (or, above
+                    // the target level, being descended into).
+                    j = path_child(path, replay_to - level);
+                    remaining &= ~((2u << j) - 1u);
+                    if (level == replay_to) {
+                        replay_to = NO_REPLAY;
+                    } else {
+                        forced = true;
+                    }
+                }
+            }
+            stack[level & STACK_MASK] = vec2<u32>(node, mask | (remaining << 8u));
+        } else {
+            let e = stack[level & STACK_MASK];
+            node = e.x;
+            mask = e.y & 0xffu;
+            remaining = e.y >> 8u;
+        }
+        if (!forced) {
+            if (remaining == 0u) {
+                if (level == 0u) {
+                    break;
+                }
+                if (SHORT_STACK && level - 1u < bottom) {
+                    replay_to = level - 1u;
+                    path = idx;
+                    level = 0u;
+                    idx = vec3<u32>(0u);
+                    addr = params.levels[0].x;
+                    bottom = 0u;
+                    enter = true;
+                    continue;
+                }
+                level -= 1u;
+                idx = idx >> vec3<u32>(1u);
+                continue;
+            }
+            j = countTrailingZeros(remaining);
+            remaining &= remaining - 1u;
+            stack[level & STACK_MASK].y = mask | (remaining << 8u);
+        }
+        let child_idx = idx * 2u + axis_bits(j);
+        let child_level = level + 1u;
+        if (child_level == p.level) {
+            f.hit = true;
+            f.cell = child_idx;
+            f.level = child_level;
+            break;
+        }
+        let c = j ^ p.neg;
+        let rank = countOneBits(mask & ((1u << c) - 1u));
+        let child_info = params.levels[child_level];
+        let pointer = fetch_pointer(node, rank, params.levels[level].y);
+        if (pointer >= child_info.z) {
+            f.status = INFO_MALFORMED;
+            break;
+        }
+        if (child_level == leaf_level) {
+            let b = brick(p, child_info.x + 2u * pointer, child_idx);
+            if (b.hit) {
+                f.hit = true;
+                f.cell = b.cell;
+                f.level = p.level;
+                break;
+            }
+            continue;
+        }
+        level = child_level;
+        idx = child_idx;
+        addr = child_info.x + pointer;
+        enter = true;
+    }
+    f.iterations = iterations;
+    return f;
+}
+
+// 64-bit addition on (low, high) pairs.
+fn add64(a: vec2<u32>, b: vec2<u32>) -> vec2<u32> {
+    let lo = a.x + b.x;
+    return vec2<u32>(lo, a.y + b.y + select(0u, 1u, lo < a.x));
+}
+
+// Voxel count of a saturated node (word address `a`) from the host's table.
+fn saturated_count(a: u32) -> vec2<u32> {
+    var lo = 0u;
+    var hi = params.sat_count;
+    loop {
+        if (lo >= hi) {
+            break;
+        }
+        let mid = (lo + hi) / 2u;
+        if (load_word(params.sat_base + 3u * mid) < a) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    let at = params.sat_base + 3u * lo;
+    if (lo < params.sat_count && load_word(at) == a) {
+        return vec2<u32>(load_word(at + 1u), load_word(at + 2u));
+    }
+    return vec2<u32>(0u);
+}
+
+// Voxel count of the child at `pointer` of level `level`.
+fn subtree_count(level: u32, pointer: u32) -> vec2<u32> {
+    let info = params.levels[level];
+    if (level == params.leaf_level) {
+        let a = info.x + 2u * pointer;
+        return vec2<u32>(countOneBits(load_word(a)) + countOneBits(load_word(a + 1u)), 0u);
+    }
+    let a = info.x + pointer;
+    let count = load_word(a) >> CHILD_MASK_BITS;
+    if (count == COUNT_SATURATED) {
+        return saturated_count(a);
+    }
+    return vec2<u32>(count, 0u);
+}
+
+// Child index (file frame) of the path of `cell` taken at coordinate bit `shift`.
+fn child_at(cell: vec3<u32>, shift: u32) -> u32 {
+    return path_child(cell, shift);
+}
+
+// The dense index of the first voxel of cell `cell` (file frame) of level
+// `level`: the counts of the earlier siblings on every level of its path plus
+// the set bits before it in its leaf.
+fn dense_index(cell: vec3<u32>, level: u32) -> vec2<u32> {
+    var index = vec2<u32>(0u);
+    var addr = params.levels[0].x;
+    let leaf_level = params.leaf_level;
+    let interior = min(level, leaf_level);
+    for (var l = 0u; l < interior; l += 1u) {
+        let mask = load_word(addr) & 0xffu;
+        let c = child_at(cell, level - 1u - l);
+        let before = countOneBits(mask & ((1u << c) - 1u));
+        let width = params.levels[l].y;
+        for (var rank = 0u; rank < before; rank += 1u) {
+            index = add64(index, subtree_count(l + 1u, fetch_pointer(addr, rank, width)));
+        }
+        let pointer = fetch_pointer(addr, before, width);
+        let child = params.levels[l + 1u];
+        addr = child.x + select(pointer, 2u * pointer, l + 1u == leaf_level);
+    }
+    if (level > leaf_level) {
+        let w0 = load_word(addr);
+        let w1 = load_word(addr + 1u);
+        var below: u32;
+        if (level == params.depth) {
+            let hi = child_at(cell & vec3<u32>(2u), 1u);
+            let lo = child_at(cell & vec3<u32>(1u), 0u);
+            below = hi * 8u + lo;
+        } else {
+            below = 8u * child_at(cell, 0u);
+        }
+        var n: u32;
+        if (below < 32u) {
+            n = countOneBits(w0 & ((1u << below) - 1u));
+        } else {
+            n = countOneBits(w0) + countOneBits(w1 & ((1u << (below - 32u)) - 1u));
+        }
+        index = add64(index, vec2<u32>(n, 0u));
+    }
+    return index;
+}
+
+// File-frame coordinates of a mirrored cell of `level`.
+fn unmirror(cell: vec3<u32>, level: u32, neg: u32) -> vec3<u32> {
+    let last = vec3<u32>((1u << level) - 1u);
+    return select(cell, last - cell, axis_bits(neg) != vec3<u32>(0u));
+}
+
+fn miss_record() -> GpuHit {
+    var h: GpuHit;
+    h.cell = vec4<u32>(0u);
+    h.t = 0.0;
+    h.index_lo = 0u;
+    h.index_hi = 0u;
+    h.iterations = 0u;
+    return h;
+}
+
+// The record of a traversal's outcome (t and face left for the caller).
+fn hit_record(f: Found, neg: u32) -> GpuHit {
+    var h = miss_record();
+    h.iterations = f.iterations;
+    if (f.hit) {
+        let cell = unmirror(f.cell, f.level, neg);
+        var info = INFO_HIT | (f.level << INFO_LEVEL_SHIFT);
+        if ((params.options & OPTION_INDEX) != 0u) {
+            let index = dense_index(cell, f.level);
+            h.index_lo = index.x;
+            h.index_hi = index.y;
+        }
+        h.cell = vec4<u32>(cell, info);
+    } else {
+        h.cell.w = f.status;
+    }
+    return h;
+}
+
+@compute @workgroup_size(BATCH_WORKGROUP_SIZE)
+fn trace_batch(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.ray_count) {
+        return;
+    }
+    let ray = rays[i];
+    if ((ray.flags & RAY_SKIP) != 0u || params.empty != 0u) {
+        hits[i] = miss_record();
+        return;
+    }
+    var p: Prepared;
+    p.o = ray.origin.xyz;
+    p.inv = ray.inv_dir.xyz;
+    p.tmin = ray.origin.w;
+    p.tmax = ray.inv_dir.w;
+    p.neg = ray.octant;
+    p.level = ray.level;
+    hits[i] = hit_record(traverse(p), p.neg);
+}
+
+// Entry parameter (in the prepared ray's units) and face of cell `cell`
+// (mirrored) of `level`, in f32.
+fn entry_face(p: Prepared, cell: vec3<u32>, level: u32) -> vec2<f32> {
+    let size = f32(1u << (params.depth - level));
+    let t_lo = (vec3<f32>(cell) * size - p.o) * p.inv;
+    let near = max3(t_lo);
+    var axis = 0u;
+    if (t_lo.y > t_lo[axis]) {
+        axis = 1u;
+    }
+    if (t_lo.z > t_lo[axis]) {
+        axis = 2u;
+    }
+    var face = FACE_INSIDE;
+    if (near >= p.tmin) {
+        face = 1u + 2u * axis + ((p.neg >> axis) & 1u);
+    }
+    return vec2<f32>(max(near, p.tmin), f32(face));
+}
+
+// Shading of the CPU renderer's `Shade::Normal`.
+fn shade(face: u32) -> u32 {
+    var n = vec3<f32>(0.0);
+    var base = vec3<f32>(0.8);
+    var diffuse = 0.6;
+    if (face != FACE_INSIDE) {
+        let axis = (face - 1u) / 2u;
+        let sign = select(-1.0, 1.0, (face & 1u) == 0u);
+        n[axis] = sign;
+        base = vec3<f32>(0.55) + 0.4 * n;
+        diffuse = max(dot(n, vec3<f32>(0.48, 0.72, 0.5)), 0.0);
+    }
+    let k = 0.35 + 0.65 * diffuse;
+    let rgb = vec3<u32>(clamp(base * k, vec3<f32>(0.0), vec3<f32>(1.0)) * 255.0 + 0.5);
+    return rgb.x | (rgb.y << 8u) | (rgb.z << 16u) | (255u << 24u);
+}
+
+const BACKGROUND: u32 = 24u | (26u << 8u) | (32u << 16u) | (255u << 24u);
+
+@compute @workgroup_size(RENDER_TILE, RENDER_TILE)
+fn render_primary(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= params.width || gid.y >= params.height) {
+        return;
+    }
+    let pixel = gid.y * params.width + gid.x;
+    let u = ((f32(gid.x) + 0.5) / f32(params.width) * 2.0 - 1.0);
+    let v = (1.0 - (f32(gid.y) + 0.5) / f32(params.height) * 2.0);
+    let d = normalize(params.cam_forward.xyz + u * params.cam_right.xyz + v * params.cam_up.xyz);
+    let res = f32(1u << params.depth);
+    let negative = d < vec3<f32>(0.0);
+    let neg = select(0u, 1u, negative.x) | select(0u, 2u, negative.y) | select(0u, 4u, negative.z);
+    var p: Prepared;
+    p.o = select(params.cam_origin.xyz, vec3<f32>(res) - params.cam_origin.xyz, negative);
+    let a = abs(d);
+    let tiny = a < vec3<f32>(max3(a) * (1.0 / TINY_DIRECTION_INVERSE));
+    p.inv = select(vec3<f32>(1.0) / max(a, vec3<f32>(1.0e-30)), vec3<f32>(TINY_DIRECTION_INVERSE), tiny);
+    p.neg = neg;
+    p.level = params.render_level;
+    let enter = max(max3((vec3<f32>(0.0) - p.o) * p.inv), 0.0);
+    let exit = min(min3((vec3<f32>(res) - p.o) * p.inv), RENDER_FAR);
+    p.tmin = enter;
+    p.tmax = exit;
+    var h = miss_record();
+    var color = BACKGROUND;
+    if (params.empty == 0u && enter <= exit) {
+        let f = traverse(p);
+        h = hit_record(f, neg);
+        if (f.hit) {
+            // The camera ray starts at t = 0, not at the cube.
+            p.tmin = 0.0;
+            let tf = entry_face(p, f.cell, f.level);
+            let face = u32(tf.y);
+            h.t = tf.x * params.cam_origin.w;
+            h.cell.w |= face << INFO_FACE_SHIFT;
+            color = shade(face);
+        }
+    }
+    if ((params.options & OPTION_WRITE_HITS) != 0u) {
+        hits[pixel] = h;
+    }
+    if ((params.options & OPTION_WRITE_IMAGE) != 0u) {
+        image[pixel] = color;
+    }
+}

@@ -1,0 +1,334 @@
+//! `dagtrace`: render `.vdag` files to PNG and trace ray batches.
+//!
+//! Errors are one line on stderr with exit status 1 (2 for usage errors);
+//! outputs are written to a temporary file in the same folder and renamed into
+//! place, so a failed run leaves no partial file, and an existing file is only
+//! replaced with `--force`.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use dagfmt::Dag;
+use dagfmt::mmap::MappedFile;
+use dagtrace::Tracer;
+use dagtrace::camera::Camera;
+use dagtrace::render::{Shade, render};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "dagtrace",
+    version,
+    about = "Ray trace .vdag sparse voxel DAGs on the CPU"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Render a view of a .vdag (or .vdag.zst) file to a PNG image.
+    Render(RenderArgs),
+    /// Trace a batch of rays (text or binary, see DESIGN.md) and write the hits.
+    Trace(TraceArgs),
+}
+
+#[derive(Args, Debug)]
+struct OpenArgs {
+    /// Skip the full validation of the file (the tracer stays memory-safe on
+    /// any bytes, but answers for a damaged file are meaningless).
+    #[arg(long)]
+    no_validate: bool,
+    /// Replace an existing output file.
+    #[arg(long)]
+    force: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum ShadeArg {
+    /// Colour by entry face.
+    Normal,
+    /// Grey level by distance.
+    Depth,
+    /// The file's voxel colours (VOXEL_COLORS), grey without them.
+    Color,
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    /// The .vdag (or .vdag.zst) file.
+    file: PathBuf,
+    /// The PNG image to write.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 1280, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 720, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    height: u32,
+    /// Camera position `x,y,z` (world space). Without it the view frames the
+    /// occupied part of the volume automatically.
+    #[arg(long, value_parser = parse_point, requires = "look_at", allow_hyphen_values = true)]
+    camera_pos: Option<[f64; 3]>,
+    /// Point the camera looks at, `x,y,z` (world space).
+    #[arg(long, value_parser = parse_point, requires = "camera_pos", allow_hyphen_values = true)]
+    look_at: Option<[f64; 3]>,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 40.0)]
+    fov: f64,
+    /// How hit pixels are coloured.
+    #[arg(long, value_enum, default_value_t = ShadeArg::Normal)]
+    shade: ShadeArg,
+    /// Level of detail: trace the cells of this level (1..=depth) instead of voxels.
+    #[arg(long)]
+    level: Option<u8>,
+    #[command(flatten)]
+    open: OpenArgs,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum HitFormat {
+    /// `vdag-hits 1` text.
+    Text,
+    /// `VHIT` binary records.
+    Binary,
+}
+
+#[derive(Args, Debug)]
+struct TraceArgs {
+    /// The .vdag (or .vdag.zst) file.
+    file: PathBuf,
+    /// The ray batch (text `vdag-rays 1` or binary `VRAY`, detected).
+    #[arg(long)]
+    rays: PathBuf,
+    /// The hit batch to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// Format of the hit batch.
+    #[arg(long, value_enum, default_value_t = HitFormat::Text)]
+    format: HitFormat,
+    #[command(flatten)]
+    open: OpenArgs,
+}
+
+fn parse_point(s: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(format!(
+            "expected three comma-separated numbers x,y,z, got `{s}`"
+        ));
+    };
+    let parse = |v: &str| match v.parse::<f64>() {
+        Ok(f) if f.is_finite() => Ok(f),
+        _ => Err(format!("`{v}` is not a finite number")),
+    };
+    Ok([parse(x)?, parse(y)?, parse(z)?])
+}
+
+/// A one-line error for the user.
+struct Failure(String);
+
+impl<E: std::fmt::Display> From<E> for Failure {
+    fn from(e: E) -> Self {
+        Failure(e.to_string())
+    }
+}
+
+fn fail<T>(message: impl Into<String>) -> Result<T, Failure> {
+    Err(Failure(message.into()))
+}
+
+/// The bytes of a `.vdag` file: a memory map, or the unpacked transport form.
+enum Source {
+    Mapped(MappedFile),
+    Unpacked(Vec<u8>),
+}
+
+impl Source {
+    fn bytes(&self) -> &[u8] {
+        match self {
+            Source::Mapped(m) => m.bytes(),
+            Source::Unpacked(v) => v,
+        }
+    }
+}
+
+/// Maps (or unpacks) and, unless told not to, validates the file.
+fn open_source(path: &Path, validate: bool) -> Result<Source, Failure> {
+    let map = MappedFile::open(path).map_err(|e| Failure(format!("{}: {e}", path.display())))?;
+    let source = if dagfmt::transport::is_transport(map.bytes()) {
+        let bytes = dagfmt::transport::unpack(map.bytes(), dagfmt::transport::DEFAULT_MAX_SIZE)
+            .map_err(|e| Failure(format!("{}: {e}", path.display())))?;
+        Source::Unpacked(bytes)
+    } else {
+        Source::Mapped(map)
+    };
+    if validate {
+        let errors = dagfmt::validate::validate(source.bytes());
+        if let Some(first) = errors.first() {
+            let more = match errors.len() {
+                1 => String::new(),
+                n => format!(
+                    " (and {} more problems; `dagtool validate` lists them)",
+                    n - 1
+                ),
+            };
+            return fail(format!("{}: invalid .vdag: {first}{more}", path.display()));
+        }
+    }
+    Ok(source)
+}
+
+/// Refuses to replace `path` without `--force`.
+fn check_output(path: &Path, force: bool) -> Result<(), Failure> {
+    if !force && path.exists() {
+        return fail(format!(
+            "{} already exists (use --force to replace it)",
+            path.display()
+        ));
+    }
+    Ok(())
+}
+
+/// Writes `path` through a temporary file in the same folder, renamed into
+/// place only when `write` succeeds.
+fn write_atomically(
+    path: &Path,
+    force: bool,
+    write: impl FnOnce(&mut BufWriter<&File>) -> std::io::Result<()>,
+) -> Result<(), Failure> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let temp = tempfile::Builder::new()
+        .prefix(".dagtrace-")
+        .suffix(".tmp")
+        .tempfile_in(dir)
+        .map_err(|e| {
+            Failure(format!(
+                "{}: cannot create a file there: {e}",
+                dir.display()
+            ))
+        })?;
+    {
+        let mut out = BufWriter::new(temp.as_file());
+        write(&mut out)
+            .and_then(|()| out.flush())
+            .map_err(|e| Failure(format!("{}: {e}", path.display())))?;
+    }
+    let persisted = if force {
+        temp.persist(path)
+    } else {
+        temp.persist_noclobber(path)
+    };
+    persisted.map_err(|e| {
+        if e.error.kind() == std::io::ErrorKind::AlreadyExists {
+            Failure(format!(
+                "{} already exists (use --force to replace it)",
+                path.display()
+            ))
+        } else {
+            Failure(format!("{}: {}", path.display(), e.error))
+        }
+    })?;
+    Ok(())
+}
+
+fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
+    check_output(&args.output, args.open.force)?;
+    let source = open_source(&args.file, !args.open.no_validate)?;
+    let dag =
+        Dag::open(source.bytes()).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let depth = dag.header().depth;
+    if let Some(level) = args.level
+        && !(1..=depth).contains(&level)
+    {
+        return fail(format!(
+            "--level {level} is outside 1..={depth} (the file's depth)"
+        ));
+    }
+    let tracer = Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let aspect = f64::from(args.width) / f64::from(args.height);
+    let camera = match (args.camera_pos, args.look_at) {
+        (Some(position), Some(look_at)) => Camera {
+            position,
+            look_at,
+            up: [0.0, 1.0, 0.0],
+            fov_y_degrees: args.fov,
+        },
+        _ => Camera {
+            fov_y_degrees: args.fov,
+            ..Camera::automatic(&dag, aspect)
+        },
+    };
+    let frame = camera.frame()?;
+    let shade = match args.shade {
+        ShadeArg::Normal => Shade::Normal,
+        ShadeArg::Depth => Shade::Depth,
+        ShadeArg::Color => Shade::Color,
+    };
+    let pixels = render(&tracer, &frame, args.width, args.height, shade, args.level)
+        .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    write_atomically(&args.output, args.open.force, |out| {
+        image::write_buffer_with_format(
+            out,
+            &pixels,
+            args.width,
+            args.height,
+            image::ExtendedColorType::Rgb8,
+            image::ImageFormat::Png,
+        )
+        .map_err(std::io::Error::other)
+    })
+}
+
+fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {
+    check_output(&args.out, args.open.force)?;
+    let source = open_source(&args.file, !args.open.no_validate)?;
+    let dag =
+        Dag::open(source.bytes()).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let depth = dag.header().depth;
+    let ray_bytes =
+        std::fs::read(&args.rays).map_err(|e| Failure(format!("{}: {e}", args.rays.display())))?;
+    let rays = dagfmt::batch::parse_rays(&ray_bytes)
+        .map_err(|e| Failure(format!("{}: {e}", args.rays.display())))?;
+    if let Some((i, level)) = rays
+        .iter()
+        .enumerate()
+        .find_map(|(i, r)| r.level.filter(|&l| l > depth).map(|l| (i, l)))
+    {
+        return fail(format!(
+            "{}: ray {} asks for level {level}, deeper than the file's depth {depth}",
+            args.rays.display(),
+            i + 1
+        ));
+    }
+    let tracer = Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let hits = tracer
+        .trace_batch(&rays)
+        .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    write_atomically(&args.out, args.open.force, |out| match args.format {
+        HitFormat::Text => dagfmt::batch::write_hits_text(out, &hits),
+        HitFormat::Binary => dagfmt::batch::write_hits_binary(out, &hits),
+    })
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Render(args) => render_cmd(args),
+        Command::Trace(args) => trace_cmd(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(Failure(message)) => {
+            eprintln!("dagtrace: error: {message}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,107 @@
+//! Shading traced primary rays into an RGB image.
+
+use crate::camera::CameraFrame;
+use crate::tracer::{TraceError, Tracer};
+use dagfmt::batch::Hit;
+
+/// How hit pixels are coloured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shade {
+    /// Colour by the entry face's normal, lit by a directional light.
+    Normal,
+    /// Grey level by distance: near is bright.
+    Depth,
+    /// The voxel's colour from the file's VOXEL_COLORS section, lit like
+    /// [`Shade::Normal`]; a neutral grey when the file has no colours.
+    Color,
+}
+
+/// Background colour of pixels whose ray hits nothing.
+pub const BACKGROUND: [u8; 3] = [24, 26, 32];
+
+/// Outward normal of an entry face (DESIGN.md numbering); face 0 (the ray
+/// starts inside) has none.
+pub fn face_normal(face: u8) -> Option<[f32; 3]> {
+    Some(match face {
+        1 => [-1.0, 0.0, 0.0],
+        2 => [1.0, 0.0, 0.0],
+        3 => [0.0, -1.0, 0.0],
+        4 => [0.0, 1.0, 0.0],
+        5 => [0.0, 0.0, -1.0],
+        6 => [0.0, 0.0, 1.0],
+        _ => return None,
+    })
+}
+
+/// Renders a `width` x `height` image (RGB8, rows from the top) seen through
+/// `camera`, tracing at `level` (`None` = full depth), on all cores.
+pub fn render(
+    tracer: &Tracer<'_>,
+    camera: &CameraFrame,
+    width: u32,
+    height: u32,
+    shade: Shade,
+    level: Option<u8>,
+) -> Result<Vec<u8>, TraceError> {
+    let rays = camera.rays(width, height, level);
+    let colored = shade == Shade::Color && tracer.colors().is_some();
+    let tracer = tracer.clone().with_index(colored);
+    let hits = tracer.trace_batch(&rays)?;
+    let (near, far) = hits
+        .iter()
+        .filter(|h| h.hit && h.t.is_finite())
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(n, f), h| {
+            (n.min(h.t), f.max(h.t))
+        });
+    let mut pixels = Vec::with_capacity(hits.len() * 3);
+    for hit in &hits {
+        let rgb = if !hit.hit {
+            BACKGROUND
+        } else {
+            match shade {
+                Shade::Depth => {
+                    let span = (far - near).max(f32::MIN_POSITIVE);
+                    let g = if hit.t.is_finite() {
+                        1.0 - 0.85 * (hit.t - near) / span
+                    } else {
+                        0.15
+                    };
+                    [to_u8(g); 3]
+                }
+                Shade::Normal => lit(normal_color(hit), hit),
+                Shade::Color => {
+                    let base = hit
+                        .index
+                        .and_then(|i| tracer.color(i))
+                        .map(|c| [c[0], c[1], c[2]].map(|v| f32::from(v) / 255.0))
+                        .unwrap_or([0.75, 0.75, 0.72]);
+                    lit(base, hit)
+                }
+            }
+        };
+        pixels.extend_from_slice(&rgb);
+    }
+    Ok(pixels)
+}
+
+/// Base colour from the face normal: each axis its own hue.
+fn normal_color(hit: &Hit) -> [f32; 3] {
+    match face_normal(hit.face) {
+        Some(n) => n.map(|v| 0.55 + 0.4 * v),
+        None => [0.8, 0.8, 0.8],
+    }
+}
+
+/// Simple directional lighting with an ambient term.
+fn lit(base: [f32; 3], hit: &Hit) -> [u8; 3] {
+    let light = [0.48f32, 0.72, 0.5];
+    let diffuse = face_normal(hit.face).map_or(0.6, |n| {
+        (n[0] * light[0] + n[1] * light[1] + n[2] * light[2]).max(0.0)
+    });
+    let k = 0.35 + 0.65 * diffuse;
+    base.map(|c| to_u8(c * k))
+}
+
+fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}

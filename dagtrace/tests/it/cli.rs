@@ -1,0 +1,256 @@
+//! The `dagtrace` command line: outputs, refusals and one-line errors.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use dagfmt::batch::{self, Ray};
+use dagfmt::{AttributeKind, Dag};
+use dagtrace::Tracer;
+use dagtrace::render::BACKGROUND;
+
+use crate::common::{Rng, build};
+use crate::props::{random_ray, scene_voxels};
+
+fn dagtrace(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_dagtrace"))
+        .args(args)
+        .output()
+        .expect("run dagtrace")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("UTF-8 temp path")
+}
+
+/// A small scene written to `dir/scene.vdag`, with its voxels.
+fn scene(dir: &Path) -> (PathBuf, Vec<[u32; 3]>) {
+    let mut rng = Rng(42);
+    let voxels = scene_voxels(5, 1, &mut rng);
+    let path = dir.join("scene.vdag");
+    std::fs::write(
+        &path,
+        build(5, AttributeKind::VoxelCount, &voxels, [1.0, -2.0, 0.5], 4.0),
+    )
+    .unwrap();
+    (path, voxels)
+}
+
+/// Only the expected files in the folder: no temporary leftovers.
+fn assert_files(dir: &Path, expected: &[&str]) {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    let mut expected: Vec<String> = expected.iter().map(|s| s.to_string()).collect();
+    expected.sort();
+    assert_eq!(names, expected);
+}
+
+fn assert_one_line_error(out: &Output, needle: &str) {
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(stderr.lines().count(), 1, "one line: {stderr}");
+    assert!(stderr.starts_with("dagtrace: error: "), "{stderr}");
+    assert!(stderr.contains(needle), "`{needle}` not in {stderr}");
+}
+
+#[test]
+fn render_writes_a_png_of_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let (vdag, _) = scene(dir.path());
+    let png = dir.path().join("out.png");
+    for shade in ["normal", "depth", "color"] {
+        let out = dagtrace(&[
+            "render",
+            s(&vdag),
+            "-o",
+            s(&png),
+            "--width",
+            "96",
+            "--height",
+            "64",
+            "--shade",
+            shade,
+            "--force",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let image = image::open(&png).unwrap().to_rgb8();
+        assert_eq!(image.dimensions(), (96, 64));
+        // The automatic view frames the object: the centre is hit, a corner is not.
+        assert_ne!(image.get_pixel(48, 32).0, BACKGROUND, "{shade}");
+        assert_eq!(image.get_pixel(0, 0).0, BACKGROUND, "{shade}");
+    }
+    // An explicit camera looking away from the volume sees only background.
+    let out = dagtrace(&[
+        "render",
+        s(&vdag),
+        "-o",
+        s(&png),
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--camera-pos",
+        "100,0,0",
+        "--look-at",
+        "200,0,0",
+        "--force",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let image = image::open(&png).unwrap().to_rgb8();
+    assert!(image.pixels().all(|p| p.0 == BACKGROUND));
+    assert_files(dir.path(), &["scene.vdag", "out.png"]);
+}
+
+#[test]
+fn outputs_are_never_overwritten_without_force() {
+    let dir = tempfile::tempdir().unwrap();
+    let (vdag, _) = scene(dir.path());
+    let png = dir.path().join("out.png");
+    std::fs::write(&png, b"keep me").unwrap();
+    let out = dagtrace(&[
+        "render",
+        s(&vdag),
+        "-o",
+        s(&png),
+        "--width",
+        "8",
+        "--height",
+        "8",
+    ]);
+    assert_one_line_error(&out, "already exists");
+    assert_eq!(std::fs::read(&png).unwrap(), b"keep me");
+    let rays = dir.path().join("rays.txt");
+    std::fs::write(&rays, "vdag-rays 1\n0 0 0 1 0 0 0 inf\n").unwrap();
+    let out = dagtrace(&["trace", s(&vdag), "--rays", s(&rays), "--out", s(&png)]);
+    assert_one_line_error(&out, "already exists");
+    assert_eq!(std::fs::read(&png).unwrap(), b"keep me");
+    assert_files(dir.path(), &["scene.vdag", "out.png", "rays.txt"]);
+}
+
+#[test]
+fn trace_writes_what_the_library_answers() {
+    let dir = tempfile::tempdir().unwrap();
+    let (vdag, voxels) = scene(dir.path());
+    let mut rng = Rng(3);
+    let rays: Vec<Ray> = (0..500)
+        .map(|_| random_ray(5, &voxels, [1.0, -2.0, 0.5], 4.0, &mut rng))
+        .collect();
+    let bytes = std::fs::read(&vdag).unwrap();
+    let dag = Dag::open(&bytes).unwrap();
+    let expected = Tracer::new(&dag).unwrap().trace_batch(&rays).unwrap();
+    assert!(expected.iter().any(|h| h.hit) && expected.iter().any(|h| !h.hit));
+    let text_rays = dir.path().join("rays.txt");
+    let mut buf = Vec::new();
+    batch::write_rays_text(&mut buf, &rays).unwrap();
+    std::fs::write(&text_rays, buf).unwrap();
+    let binary_rays = dir.path().join("rays.bin");
+    let mut buf = Vec::new();
+    batch::write_rays_binary(&mut buf, &rays).unwrap();
+    std::fs::write(&binary_rays, buf).unwrap();
+    for (rays_path, format) in [
+        (&text_rays, "text"),
+        (&binary_rays, "binary"),
+        (&text_rays, "binary"),
+    ] {
+        let hits_path = dir.path().join("hits.out");
+        let out = dagtrace(&[
+            "trace",
+            s(&vdag),
+            "--rays",
+            s(rays_path),
+            "--out",
+            s(&hits_path),
+            "--format",
+            format,
+            "--force",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let written = std::fs::read(&hits_path).unwrap();
+        assert_eq!(written.starts_with(b"VHIT"), format == "binary");
+        let hits = batch::parse_hits(&written).unwrap();
+        assert_eq!(hits.len(), expected.len());
+        for (got, want) in hits.iter().zip(&expected) {
+            assert_eq!(got.hit, want.hit);
+            if want.hit {
+                assert_eq!(got, want);
+            }
+        }
+    }
+}
+
+#[test]
+fn bad_inputs_fail_with_one_line_and_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let (vdag, _) = scene(dir.path());
+    let hits = dir.path().join("hits.txt");
+    let rays = dir.path().join("rays.txt");
+    // A malformed ray batch names the line.
+    std::fs::write(&rays, "vdag-rays 1\n0 0 0 1 0\n").unwrap();
+    let out = dagtrace(&["trace", s(&vdag), "--rays", s(&rays), "--out", s(&hits)]);
+    assert_one_line_error(&out, "line 2");
+    // A level deeper than the file.
+    std::fs::write(
+        &rays,
+        "vdag-rays 1\n0 0 0 1 0 0 0 inf 5\n0 0 0 1 0 0 0 inf 6\n",
+    )
+    .unwrap();
+    let out = dagtrace(&["trace", s(&vdag), "--rays", s(&rays), "--out", s(&hits)]);
+    assert_one_line_error(&out, "ray 2 asks for level 6");
+    // A damaged file is caught by validation and names the rule.
+    let mut bytes = std::fs::read(&vdag).unwrap();
+    let last = bytes.len() - 3;
+    bytes[last] ^= 0x10;
+    let damaged = dir.path().join("damaged.vdag");
+    std::fs::write(&damaged, &bytes).unwrap();
+    std::fs::write(&rays, "vdag-rays 1\n0 0 0 1 0 0 0 inf\n").unwrap();
+    let out = dagtrace(&["trace", s(&damaged), "--rays", s(&rays), "--out", s(&hits)]);
+    assert_one_line_error(&out, "E0");
+    let out = dagtrace(&["render", s(&damaged), "-o", s(&dir.path().join("x.png"))]);
+    assert_one_line_error(&out, "invalid .vdag");
+    // Not a .vdag at all.
+    let out = dagtrace(&[
+        "render",
+        s(&rays),
+        "-o",
+        s(&dir.path().join("x.png")),
+        "--no-validate",
+    ]);
+    assert_one_line_error(&out, "E001");
+    // A missing input, and a level out of range.
+    let out = dagtrace(&[
+        "render",
+        s(&dir.path().join("none.vdag")),
+        "-o",
+        s(&dir.path().join("x.png")),
+    ]);
+    assert_one_line_error(&out, "none.vdag");
+    let out = dagtrace(&[
+        "render",
+        s(&vdag),
+        "-o",
+        s(&dir.path().join("x.png")),
+        "--level",
+        "9",
+    ]);
+    assert_one_line_error(&out, "--level 9");
+    assert_files(dir.path(), &["scene.vdag", "rays.txt", "damaged.vdag"]);
+}

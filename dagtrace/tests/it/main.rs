@@ -1,0 +1,9 @@
+//! dagtrace's integration tests (one test binary, one module per concern).
+
+mod cases;
+mod cli;
+mod common;
+#[cfg(feature = "gpu")]
+mod gpu;
+mod oracle;
+mod props;

@@ -1,7 +1,7 @@
 //! `conformance`: runs the `.vdag` conformance suite (spec/CONFORMANCE.md).
 //!
 //! ```text
-//! conformance run [--tracer cpu|gpu | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays]
+//! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays]
 //! conformance validate [--exec 'CMD {file}']
 //! conformance bless [--out DIR]
 //! conformance list
@@ -34,7 +34,7 @@ struct Cli {
 enum TracerKind {
     /// dagtrace's CPU tracer, in process.
     Cpu,
-    /// The GPU tracer (not available yet).
+    /// dagtrace's GPU tracer (wgpu), in process, on the default adapter.
     Gpu,
 }
 
@@ -50,6 +50,9 @@ enum Cmd {
         /// the hits must be written to.
         #[arg(long, value_name = "COMMAND")]
         exec: Option<String>,
+        /// With --tracer gpu: use the short-stack (restart) variant with this many entries.
+        #[arg(long, value_name = "N")]
+        short_stack: Option<u32>,
         /// Give the external tracer the rays in the binary batch format.
         #[arg(long, requires = "exec")]
         binary_rays: bool,
@@ -112,6 +115,7 @@ fn run(cli: Cli) -> Result<bool, String> {
             tracer,
             exec,
             binary_rays,
+            short_stack,
             cases,
             filter,
         } => {
@@ -123,9 +127,9 @@ fn run(cli: Cli) -> Result<bool, String> {
                 }),
                 (None, TracerKind::Cpu) => Box::new(suite::CpuTracer),
                 (None, TracerKind::Gpu) => {
-                    return Err(
-                        "the GPU tracer is not available yet (it is a later issue); use --tracer cpu or --exec".into()
-                    );
+                    let gpu = suite::GpuTracer::new(short_stack)?;
+                    println!("GPU adapter: {}", gpu.adapter_name());
+                    Box::new(gpu)
                 }
             };
             let cases = suite::trace_cases(&root, filter.as_deref())?;

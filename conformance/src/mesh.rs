@@ -17,6 +17,29 @@ pub struct Mesh {
     pub triangles: Vec<[[f64; 3]; 3]>,
 }
 
+/// Sine and cosine of `x` in `[-2pi, 2pi]` from their Taylor series, using
+/// only correctly rounded IEEE operations, so that the generated meshes (and
+/// the committed cases) are identical on every platform, whatever its libm.
+fn sin_cos(x: f64) -> (f64, f64) {
+    let x = if x > std::f64::consts::PI {
+        x - 2.0 * std::f64::consts::PI
+    } else {
+        x
+    };
+    let (mut sin, mut cos) = (0.0, 0.0);
+    let mut term = 1.0; // x^k / k!
+    for k in 0..40u32 {
+        match k % 4 {
+            0 => cos += term,
+            1 => sin += term,
+            2 => cos -= term,
+            _ => sin -= term,
+        }
+        term *= x / f64::from(k + 1);
+    }
+    (sin, cos)
+}
+
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
@@ -39,10 +62,11 @@ impl Mesh {
         let point = |ring: u32, seg: u32| {
             let theta = std::f64::consts::PI * f64::from(ring) / f64::from(rings);
             let phi = 2.0 * std::f64::consts::PI * f64::from(seg % segments) / f64::from(segments);
+            let ((sin_t, cos_t), (sin_p, cos_p)) = (sin_cos(theta), sin_cos(phi));
             [
-                center[0] + radius * theta.sin() * phi.cos(),
-                center[1] + radius * theta.cos(),
-                center[2] + radius * theta.sin() * phi.sin(),
+                center[0] + radius * sin_t * cos_p,
+                center[1] + radius * cos_t,
+                center[2] + radius * sin_t * sin_p,
             ]
         };
         let mut mesh = Mesh::default();
@@ -71,11 +95,12 @@ impl Mesh {
         let point = |ring: u32, side: u32| {
             let u = 2.0 * std::f64::consts::PI * f64::from(ring % rings) / f64::from(rings);
             let v = 2.0 * std::f64::consts::PI * f64::from(side % sides) / f64::from(sides);
-            let r = major + minor * v.cos();
+            let ((sin_u, cos_u), (sin_v, cos_v)) = (sin_cos(u), sin_cos(v));
+            let r = major + minor * cos_v;
             [
-                center[0] + r * u.cos(),
-                center[1] + minor * v.sin(),
-                center[2] + r * u.sin(),
+                center[0] + r * cos_u,
+                center[1] + minor * sin_v,
+                center[2] + r * sin_u,
             ]
         };
         let mut mesh = Mesh::default();
@@ -161,6 +186,18 @@ pub fn triangle_overlaps_box(tri: &[[f64; 3]; 3], center: [f64; 3], half: f64) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn series_matches_libm() {
+        for i in 0..=200 {
+            let x = std::f64::consts::TAU * (f64::from(i) / 100.0 - 1.0);
+            let (s, c) = sin_cos(x);
+            assert!(
+                (s - x.sin()).abs() < 1e-13 && (c - x.cos()).abs() < 1e-13,
+                "{x}"
+            );
+        }
+    }
 
     #[test]
     fn overlap_test() {

@@ -182,6 +182,47 @@ impl TraceBackend for CpuTracer {
     }
 }
 
+/// dagtrace's GPU tracer, in process. One device (and its compiled shaders) is
+/// shared by every case; each case uploads its own DAG.
+#[derive(Debug)]
+pub struct GpuTracer {
+    context: dagtrace::gpu::GpuContext,
+    options: dagtrace::gpu::GpuOptions,
+}
+
+impl GpuTracer {
+    /// Opens the default adapter (hardware first, else a software one).
+    /// `short_stack` selects the short-stack (restart) variant with that many entries.
+    pub fn new(short_stack: Option<u32>) -> Result<Self, String> {
+        let options = dagtrace::gpu::GpuOptions {
+            stack: match short_stack {
+                Some(n) => dagtrace::gpu::StackMode::Short(n),
+                None => dagtrace::gpu::StackMode::Full,
+            },
+            ..Default::default()
+        };
+        let context = dagtrace::gpu::GpuContext::new(options.adapter)
+            .map_err(|e| format!("no GPU tracer: {e}"))?;
+        Ok(GpuTracer { context, options })
+    }
+
+    /// The adapter's name, for reports.
+    pub fn adapter_name(&self) -> String {
+        self.context.adapter_name()
+    }
+}
+
+impl TraceBackend for GpuTracer {
+    fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
+        let dag = Dag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
+        let tracer = dagtrace::gpu::GpuTracer::with_context(&self.context, &dag, &self.options)
+            .map_err(|e| format!("the GPU tracer refuses the file: {e}"))?;
+        tracer
+            .trace(rays)
+            .map_err(|e| format!("GPU tracing failed: {e}"))
+    }
+}
+
 /// Quotes a path for `sh`.
 pub fn shell_quote(path: &Path) -> String {
     format!("'{}'", path.to_string_lossy().replace('\'', r"'\''"))

@@ -9,7 +9,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use conformance::suite::{self, CpuTracer, InProcessValidator, Outcome, TraceBackend, TraceCaseFiles};
+use conformance::suite::{
+    self, CpuTracer, InProcessValidator, Outcome, TraceBackend, TraceCaseFiles,
+};
 use conformance::{bless, model};
 use dagfmt::batch::{Hit, Ray};
 
@@ -29,7 +31,11 @@ fn committed_cases() -> &'static Path {
         if std::env::var_os("BLESS").is_some_and(|v| v == "1") {
             let files = bless::generate().expect("generation succeeds");
             bless::write(&dir, &files).expect("writing the cases");
-            eprintln!("BLESS=1: rewrote {} case files in {}", files.len(), dir.display());
+            eprintln!(
+                "BLESS=1: rewrote {} case files in {}",
+                files.len(),
+                dir.display()
+            );
         }
         dir
     })
@@ -45,7 +51,10 @@ fn show(outcomes: &[Outcome]) -> String {
 }
 
 fn run(args: &[&str]) -> Output {
-    Command::new(conformance_exe()).args(args).output().expect("the conformance binary runs")
+    Command::new(conformance_exe())
+        .args(args)
+        .output()
+        .expect("the conformance binary runs")
 }
 
 fn stdout(output: &Output) -> String {
@@ -67,10 +76,45 @@ fn summary(output: &Output) -> (usize, usize) {
 fn cpu_tracer_passes_every_case() {
     let cases = suite::trace_cases(committed_cases(), None).expect("committed cases");
     assert!(cases.len() >= 40, "only {} tracer cases", cases.len());
-    let outcomes: Vec<_> = cases.iter().map(|c| suite::run_trace_case(c, &CpuTracer)).collect();
+    let outcomes: Vec<_> = cases
+        .iter()
+        .map(|c| suite::run_trace_case(c, &CpuTracer))
+        .collect();
     let rays: usize = outcomes.iter().map(|o| o.checked).sum();
     assert!(rays >= 5000, "only {rays} rays");
     assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
+}
+
+/// The GPU tracer (full stack and short stack) must pass every case too. Without
+/// an adapter this says it was skipped, unless `VDAG_REQUIRE_GPU=1` (set by CI,
+/// which installs Mesa's software Vulkan driver) makes that a failure.
+#[test]
+fn gpu_tracer_passes_every_case() {
+    for short_stack in [None, Some(2)] {
+        let gpu = match suite::GpuTracer::new(short_stack) {
+            Ok(gpu) => gpu,
+            Err(e) => {
+                if std::env::var("VDAG_REQUIRE_GPU").is_ok_and(|v| v == "1") {
+                    panic!("VDAG_REQUIRE_GPU=1 but {e}");
+                }
+                println!(
+                    "skipped: no GPU adapter (set VDAG_REQUIRE_GPU=1 to make this an error): {e}"
+                );
+                return;
+            }
+        };
+        let cases = suite::trace_cases(committed_cases(), None).expect("cases load");
+        let outcomes: Vec<_> = cases
+            .iter()
+            .map(|c| suite::run_trace_case(c, &gpu))
+            .collect();
+        assert!(
+            outcomes.iter().all(Outcome::passed),
+            "GPU tracer ({}, short stack {short_stack:?}) failed:\n{}",
+            gpu.adapter_name(),
+            show(&outcomes)
+        );
+    }
 }
 
 #[test]
@@ -79,10 +123,18 @@ fn validator_passes_every_case() {
     // One case (at least) for every error code but the untestable ones.
     for &code in dagfmt::ErrorCode::ALL {
         let covered = cases.iter().any(|c| c.expected == Some(code));
-        let untestable = conformance::malformed::UNTESTABLE.iter().any(|(c, _)| *c == code);
-        assert!(covered != untestable, "{code}: covered {covered}, listed untestable {untestable}");
+        let untestable = conformance::malformed::UNTESTABLE
+            .iter()
+            .any(|(c, _)| *c == code);
+        assert!(
+            covered != untestable,
+            "{code}: covered {covered}, listed untestable {untestable}"
+        );
     }
-    let outcomes: Vec<_> = cases.iter().map(|c| suite::run_validate_case(c, &InProcessValidator)).collect();
+    let outcomes: Vec<_> = cases
+        .iter()
+        .map(|c| suite::run_validate_case(c, &InProcessValidator))
+        .collect();
     assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
 }
 
@@ -90,12 +142,16 @@ fn validator_passes_every_case() {
 fn malformed_files_break_only_their_rule() {
     // Where the edit can break one rule alone, dagfmt's validator (which
     // reports every finding) reports that code and no other.
-    let cases = suite::validate_cases(committed_cases(), Some("validate/E")).expect("committed cases");
-    let consequential = ["E030", "E042", "E012"];
+    let cases =
+        suite::validate_cases(committed_cases(), Some("validate/E")).expect("committed cases");
+    let consequential = ["E030", "E042"];
     for case in cases {
         let expected = case.expected.expect("malformed");
         let bytes = std::fs::read(&case.path).expect("read");
-        let mut codes: Vec<_> = dagfmt::validate::validate(&bytes).iter().map(|e| e.code).collect();
+        let mut codes: Vec<_> = dagfmt::validate::validate(&bytes)
+            .iter()
+            .map(|e| e.code)
+            .collect();
         codes.dedup();
         if !consequential.contains(&expected.code()) {
             assert_eq!(codes, vec![expected], "{}", case.name);
@@ -107,24 +163,42 @@ fn malformed_files_break_only_their_rule() {
 fn committed_cases_are_reproducible() {
     let committed = committed_cases();
     let temp = tempfile::tempdir().expect("temp dir");
-    let output = run(&["bless", "--out", temp.path().to_str().expect("UTF-8 temp path")]);
-    assert!(output.status.success(), "bless failed: {}", String::from_utf8_lossy(&output.stderr));
+    let output = run(&[
+        "bless",
+        "--out",
+        temp.path().to_str().expect("UTF-8 temp path"),
+    ]);
+    assert!(
+        output.status.success(),
+        "bless failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     let list = |root: &Path| -> Vec<String> {
         let mut names = Vec::new();
         for dir in [bless::TRACE_DIR, bless::VALIDATE_DIR] {
             for entry in std::fs::read_dir(root.join(dir)).expect("list") {
-                names.push(format!("{dir}/{}", entry.expect("entry").file_name().to_string_lossy()));
+                names.push(format!(
+                    "{dir}/{}",
+                    entry.expect("entry").file_name().to_string_lossy()
+                ));
             }
         }
         names.sort();
         names
     };
     let fresh = list(temp.path());
-    assert_eq!(fresh, list(committed), "the committed case files differ from bless's (run `BLESS=1 cargo test -p conformance`)");
+    assert_eq!(
+        fresh,
+        list(committed),
+        "the committed case files differ from bless's (run `BLESS=1 cargo test -p conformance`)"
+    );
     for name in fresh {
         let a = std::fs::read(temp.path().join(&name)).expect("read");
         let b = std::fs::read(committed.join(&name)).expect("read");
-        assert!(a == b, "{name} differs from what bless writes (run `BLESS=1 cargo test -p conformance`)");
+        assert!(
+            a == b,
+            "{name} differs from what bless writes (run `BLESS=1 cargo test -p conformance`)"
+        );
     }
     let total: u64 = ["trace", "validate"]
         .iter()
@@ -142,7 +216,11 @@ fn model_encoder_reproduces_builder_files() {
         }
         let bytes = std::fs::read(&case.dag).expect("read");
         let decoded = model::DagModel::decode(&bytes).expect("decodes");
-        assert!(decoded.encode() == bytes, "{}: decode + encode changes the file", case.name);
+        assert!(
+            decoded.encode() == bytes,
+            "{}: decode + encode changes the file",
+            case.name
+        );
     }
 }
 
@@ -162,18 +240,56 @@ fn the_judge_catches_wrong_answers() {
     type Mutation = fn(&Ray, Hit) -> Hit;
     let mutants: [(&str, Mutation); 8] = [
         ("every hit becomes a miss", |_, _| Hit::MISS),
-        ("t a bit late", |_, h| Hit { t: h.t + 0.01 * h.t.abs().max(0.05), ..h }),
-        ("t a bit early", |_, h| Hit { t: h.t - 0.01 * h.t.abs().max(0.05), ..h }),
-        ("wrong face", |_, h| Hit { face: (h.face + 1) % 7, ..h }),
-        ("wrong index", |_, h| Hit { index: h.index.map(|i| i + 1), ..h }),
-        ("neighbouring cell", |_, h| Hit { voxel: [h.voxel[0] ^ 1, h.voxel[1], h.voxel[2]], ..h }),
-        ("wrong level", |_, h| Hit { level: if h.level > 1 { h.level - 1 } else { 2 }, ..h }),
-        ("misses become hits", |r, h| if h.hit { h } else { Hit { hit: true, t: r.tmin.max(0.0), voxel: [0; 3], level: r.level.unwrap_or(1), face: 1, index: Some(0) } }),
+        ("t a bit late", |_, h| Hit {
+            t: h.t + 0.01 * h.t.abs().max(0.05),
+            ..h
+        }),
+        ("t a bit early", |_, h| Hit {
+            t: h.t - 0.01 * h.t.abs().max(0.05),
+            ..h
+        }),
+        ("wrong face", |_, h| Hit {
+            face: (h.face + 1) % 7,
+            ..h
+        }),
+        ("wrong index", |_, h| Hit {
+            index: h.index.map(|i| i + 1),
+            ..h
+        }),
+        ("neighbouring cell", |_, h| Hit {
+            voxel: [h.voxel[0] ^ 1, h.voxel[1], h.voxel[2]],
+            ..h
+        }),
+        ("wrong level", |_, h| Hit {
+            level: if h.level > 1 { h.level - 1 } else { 2 },
+            ..h
+        }),
+        ("misses become hits", |r, h| {
+            if h.hit {
+                h
+            } else {
+                Hit {
+                    hit: true,
+                    t: r.tmin.max(0.0),
+                    voxel: [0; 3],
+                    level: r.level.unwrap_or(1),
+                    face: 1,
+                    index: Some(0),
+                }
+            }
+        }),
     ];
     for (what, f) in mutants {
-        let outcomes: Vec<_> = cases.iter().map(|c| suite::run_trace_case(c, &Mutant(f))).collect();
+        let outcomes: Vec<_> = cases
+            .iter()
+            .map(|c| suite::run_trace_case(c, &Mutant(f)))
+            .collect();
         let failed = outcomes.iter().filter(|o| !o.passed()).count();
-        assert!(failed * 2 >= outcomes.len(), "mutant `{what}` fails only {failed} of {} cases", outcomes.len());
+        assert!(
+            failed * 2 >= outcomes.len(),
+            "mutant `{what}` fails only {failed} of {} cases",
+            outcomes.len()
+        );
     }
 }
 
@@ -183,12 +299,20 @@ fn runner_drives_an_external_validator() {
     let command = format!("'{}' validate-file {{file}}", conformance_exe());
     let output = run(&["validate", "--cases", &cases, "--exec", &command]);
     let (passed, failed) = summary(&output);
-    assert!(output.status.success() && failed == 0 && passed > 50, "{}", stdout(&output));
+    assert!(
+        output.status.success() && failed == 0 && passed > 50,
+        "{}",
+        stdout(&output)
+    );
     // A validator that accepts everything fails every malformed case.
     let output = run(&["validate", "--cases", &cases, "--exec", "true"]);
     let (_, failed) = summary(&output);
     assert_eq!(output.status.code(), Some(1));
-    assert!(failed >= dagfmt::ErrorCode::ALL.len() - 1, "{}", stdout(&output));
+    assert!(
+        failed >= dagfmt::ErrorCode::ALL.len() - 1,
+        "{}",
+        stdout(&output)
+    );
     assert!(stdout(&output).contains("accepted, expected rejection with E041"));
 }
 
@@ -196,21 +320,26 @@ fn runner_drives_an_external_validator() {
 fn runner_reports_broken_external_tracers() {
     let cases = committed_cases().to_str().expect("UTF-8").to_string();
     // A command that fails.
-    let output = run(&["run", "--cases", &cases, "--filter", "full", "--exec", "exit 3"]);
+    let output = run(&[
+        "run", "--cases", &cases, "--filter", "full", "--exec", "exit 3",
+    ]);
     assert_eq!(output.status.code(), Some(1));
     let (passed, failed) = summary(&output);
     assert!(passed == 0 && failed >= 2, "{}", stdout(&output));
     // A tracer that answers `miss` to every ray.
     let all_miss = "{ echo vdag-hits 1; grep -v -e '^#' -e '^vdag-rays' -e '^$' {rays} | sed 's/.*/miss/'; } > {hits}";
-    let output = run(&["run", "--cases", &cases, "--filter", "full-d4", "--exec", all_miss]);
+    let output = run(&[
+        "run", "--cases", &cases, "--filter", "full-d4", "--exec", all_miss,
+    ]);
     assert_eq!(output.status.code(), Some(1));
     let text = stdout(&output);
-    assert!(text.contains("FAIL full-d4") && text.contains("a hit is required") && text.contains("expected: hit 4"), "{text}");
+    assert!(
+        text.contains("FAIL full-d4")
+            && text.contains("a hit is required")
+            && text.contains("expected: hit 4"),
+        "{text}"
+    );
     assert_eq!(summary(&output), (0, 1));
-    // The GPU tracer is announced as unavailable.
-    let output = run(&["run", "--tracer", "gpu"]);
-    assert_eq!(output.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&output.stderr).contains("not available yet"));
 }
 
 #[test]
@@ -218,20 +347,54 @@ fn runner_passes_with_the_in_process_tracer() {
     let cases = committed_cases().to_str().expect("UTF-8").to_string();
     let output = run(&["run", "--tracer", "cpu", "--cases", &cases]);
     let (passed, failed) = summary(&output);
-    assert!(output.status.success() && failed == 0 && passed >= 40, "{}", stdout(&output));
+    assert!(
+        output.status.success() && failed == 0 && passed >= 40,
+        "{}",
+        stdout(&output)
+    );
 }
 
-/// Builds dagtrace's `dagtrace` binary into the target directory this test
-/// runs from (where it is found next to the conformance binary) and returns
-/// its path; `None` (with a message) while the package has no such binary.
-fn dagtrace_binary() -> Option<PathBuf> {
+/// Newest modification time of any file under `dir` (recursively).
+fn newest_mtime(dir: &Path) -> Option<std::time::SystemTime> {
+    let mut newest = None;
+    for entry in std::fs::read_dir(dir).ok()?.flatten() {
+        let path = entry.path();
+        let time = if path.is_dir() {
+            newest_mtime(&path)
+        } else {
+            entry.metadata().ok().and_then(|m| m.modified().ok())
+        };
+        newest = newest.max(time);
+    }
+    newest
+}
+
+/// Returns binary `bin` of workspace package `package` from the target
+/// directory this test runs from (next to the conformance binary).
+///
+/// `cargo test --workspace` has already built it there; it is rebuilt only
+/// when missing or older than the package's sources (a nested `cargo build -p`
+/// resolves features per package and could rebuild wgpu from scratch, which
+/// costs minutes on a 2-core CI machine). `None` (with a message) while the
+/// package has no such binary.
+fn workspace_binary(package: &str, bin: &str) -> Option<PathBuf> {
     let ours = PathBuf::from(conformance_exe());
     let profile_dir = ours.parent().expect("binary directory");
     let target_dir = profile_dir.parent().expect("target directory");
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("workspace root");
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("workspace root");
+    let binary = profile_dir.join(format!("{bin}{}", std::env::consts::EXE_SUFFIX));
+    let built = std::fs::metadata(&binary).and_then(|m| m.modified()).ok();
+    let sources = newest_mtime(&workspace.join(package).join("src"));
+    if built.is_some() && sources.is_some() && built >= sources {
+        return Some(binary);
+    }
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let mut command = Command::new(cargo);
-    command.current_dir(workspace).args(["build", "-p", "dagtrace", "--bin", "dagtrace"]);
+    command
+        .current_dir(workspace)
+        .args(["build", "-p", package, "--bin", bin]);
     command.env("CARGO_TARGET_DIR", target_dir);
     if profile_dir.file_name().is_some_and(|n| n == "release") {
         command.arg("--release");
@@ -239,28 +402,50 @@ fn dagtrace_binary() -> Option<PathBuf> {
     let output = command.output().expect("cargo runs");
     let stderr = String::from_utf8_lossy(&output.stderr);
     if !output.status.success() {
-        if stderr.contains("no bin target named `dagtrace`") {
-            eprintln!("skipping: the dagtrace package has no `dagtrace` binary yet");
+        if stderr.contains(&format!("no bin target named `{bin}`")) {
+            eprintln!("skipping: the {package} package has no `{bin}` binary yet");
             return None;
         }
-        panic!("building the dagtrace binary failed:\n{stderr}");
+        panic!("building the {bin} binary failed:\n{stderr}");
     }
-    let binary = profile_dir.join(format!("dagtrace{}", std::env::consts::EXE_SUFFIX));
     assert!(binary.exists(), "{} was not built", binary.display());
     Some(binary)
 }
 
 #[test]
 fn runner_drives_the_dagtrace_binary() {
-    let Some(dagtrace) = dagtrace_binary() else { return };
+    let Some(dagtrace) = workspace_binary("dagtrace", "dagtrace") else {
+        return;
+    };
     let cases = committed_cases().to_str().expect("UTF-8").to_string();
     let quoted = suite::shell_quote(&dagtrace);
     for (format, extra) in [("text", &[][..]), ("binary", &["--binary-rays"][..])] {
-        let command = format!("{quoted} trace {{dag}} --rays {{rays}} --out {{hits}} --format {format}");
+        let command =
+            format!("{quoted} trace {{dag}} --rays {{rays}} --out {{hits}} --format {format}");
         let mut args = vec!["run", "--cases", &cases, "--exec", &command];
         args.extend_from_slice(extra);
         let output = run(&args);
         let (passed, failed) = summary(&output);
-        assert!(output.status.success() && failed == 0 && passed >= 40, "{format}: {}", stdout(&output));
+        assert!(
+            output.status.success() && failed == 0 && passed >= 40,
+            "{format}: {}",
+            stdout(&output)
+        );
     }
+}
+
+#[test]
+fn runner_drives_the_dagtool_validator() {
+    let Some(dagtool) = workspace_binary("dagtool", "dagtool") else {
+        return;
+    };
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let command = format!("{} validate {{file}}", suite::shell_quote(&dagtool));
+    let output = run(&["validate", "--cases", &cases, "--exec", &command]);
+    let (passed, failed) = summary(&output);
+    assert!(
+        output.status.success() && failed == 0 && passed > 50,
+        "{}",
+        stdout(&output)
+    );
 }

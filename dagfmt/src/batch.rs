@@ -157,6 +157,19 @@ struct TextLines<'a> {
     lines: NumberedLines<'a>,
 }
 
+/// Fields kept per text line: one more than any record has.
+const MAX_FIELDS: usize = 10;
+
+/// `n` fields kept of a line, for messages: the line may hold more when
+/// [`MAX_FIELDS`] were kept.
+fn field_count(n: usize) -> String {
+    if n + 1 >= MAX_FIELDS {
+        format!("{n} or more")
+    } else {
+        n.to_string()
+    }
+}
+
 /// Lines of a byte slice split at `\n`, numbered from 0.
 type NumberedLines<'a> = std::iter::Enumerate<std::slice::Split<'a, u8, fn(&u8) -> bool>>;
 
@@ -180,7 +193,9 @@ impl<'a> Iterator for TextLines<'a> {
                 Err(_) => return Some(Err(text_error(line, "not UTF-8 text"))),
             };
             let content = text.split('#').next().unwrap_or("");
-            let fields: Vec<&str> = content.split_ascii_whitespace().collect();
+            // No record has more than 9 fields: keep at most 10 (enough to
+            // say "too many"), so a line of a million fields costs no memory.
+            let fields: Vec<&str> = content.split_ascii_whitespace().take(MAX_FIELDS).collect();
             if !fields.is_empty() {
                 return Some(Ok((line, fields)));
             }
@@ -261,7 +276,7 @@ fn parse_text_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
                 line,
                 format!(
                     "a ray needs 8 or 9 fields (ox oy oz dx dy dz tmin tmax [level]), found {}",
-                    fields.len()
+                    field_count(fields.len())
                 ),
             ));
         }
@@ -297,7 +312,10 @@ fn parse_text_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
             "miss" => {
                 return Err(text_error(
                     line,
-                    format!("`miss` takes no fields, found {}", fields.len() - 1),
+                    format!(
+                        "`miss` takes no fields, found {}",
+                        field_count(fields.len() - 1)
+                    ),
                 ));
             }
             "hit" if fields.len() == 8 => {
@@ -341,7 +359,7 @@ fn parse_text_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
                     line,
                     format!(
                         "a hit needs 7 fields (T X Y Z LEVEL FACE INDEX), found {}",
-                        fields.len() - 1
+                        field_count(fields.len() - 1)
                     ),
                 ));
             }

@@ -138,7 +138,13 @@ pub struct FormatError {
 impl FormatError {
     /// A violation at `offset` with no level or node.
     pub fn new(code: ErrorCode, offset: u64, message: impl Into<String>) -> Self {
-        FormatError { code, offset, level: None, node: None, message: message.into() }
+        FormatError {
+            code,
+            offset,
+            level: None,
+            node: None,
+            message: message.into(),
+        }
     }
 
     /// Attaches the level concerned.

@@ -7,7 +7,9 @@
 //! - [`validate`]: checks every rule of the spec and reports every violation;
 //! - [`transport`]: the zstd-compressed transport form;
 //! - [`batch`]: the text and binary ray and hit batch formats;
-//! - [`morton`]: Morton codes, the order of voxels in the DAG.
+//! - [`morton`]: Morton codes, the order of voxels in the DAG;
+//! - `fuzzing` (hidden): the harnesses of the fuzz targets in `fuzz/`, also
+//!   run by the test suite.
 //!
 //! The library does no file I/O except [`mmap`] (feature `mmap`), a helper
 //! that memory-maps a file for the reader.
@@ -16,6 +18,8 @@
 pub mod batch;
 pub mod builder;
 pub mod error;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod layout;
 #[cfg(feature = "mmap")]
 pub mod mmap;

@@ -47,7 +47,13 @@ mod tests {
 
     #[test]
     fn round_trip_and_order() {
-        for &(x, y, z) in &[(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (0x1f_ffff, 5, 0x10_0000)] {
+        for &(x, y, z) in &[
+            (0, 0, 0),
+            (1, 0, 0),
+            (0, 1, 0),
+            (0, 0, 1),
+            (0x1f_ffff, 5, 0x10_0000),
+        ] {
             assert_eq!(decode(encode(x, y, z)), [x, y, z]);
         }
         assert_eq!(encode(1, 0, 0), 1);

@@ -93,7 +93,11 @@ pub struct LevelSection<'a> {
 impl LevelSection<'_> {
     /// Number of addressable units: 4-byte words of a node level, leaves of the leaf level.
     pub fn units(&self) -> u64 {
-        if self.is_leaf { self.bytes.len() as u64 / 8 } else { self.bytes.len() as u64 / 4 }
+        if self.is_leaf {
+            self.bytes.len() as u64 / 8
+        } else {
+            self.bytes.len() as u64 / 4
+        }
     }
 }
 
@@ -216,11 +220,15 @@ pub struct Dag<'a> {
 }
 
 pub(crate) fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
-    bytes.get(at..at + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    bytes
+        .get(at..at + 4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
 }
 
 pub(crate) fn read_u64(bytes: &[u8], at: usize) -> Option<u64> {
-    bytes.get(at..at + 8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+    bytes
+        .get(at..at + 8)
+        .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
 }
 
 /// Decodes the header without judging it.
@@ -229,7 +237,10 @@ pub fn decode_header(raw: &RawHeader) -> Result<Header, FormatError> {
         FormatError::new(
             ErrorCode::UnknownAttributeKind,
             25,
-            format!("attribute kind {} is not in the registry", raw.attribute_kind),
+            format!(
+                "attribute kind {} is not in the registry",
+                raw.attribute_kind
+            ),
         )
     })?;
     Ok(decode_header_fields(raw, kind))
@@ -254,7 +265,10 @@ fn decode_header_fields(raw: &RawHeader, attribute_kind: AttributeKind) -> Heade
 }
 
 /// Decodes one section table entry without judging it.
-pub fn decode_section_entry(index: u16, raw: &RawSectionEntry) -> Result<SectionEntry, FormatError> {
+pub fn decode_section_entry(
+    index: u16,
+    raw: &RawSectionEntry,
+) -> Result<SectionEntry, FormatError> {
     let entry_offset = (HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE) as u64;
     let raw_kind = u32::from_le(raw.kind);
     let kind = SectionKind::from_raw(raw_kind).ok_or_else(|| {
@@ -317,7 +331,10 @@ pub(crate) struct LayoutChecks {
 /// looked at here.
 pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
     let mut first = None;
-    let checks = LayoutChecks { thorough: false, max_file_size: MAX_FILE_SIZE };
+    let checks = LayoutChecks {
+        thorough: false,
+        max_file_size: MAX_FILE_SIZE,
+    };
     let layout = check_layout(bytes, checks, &mut |e| {
         first = Some(e);
         ControlFlow::Break(())
@@ -361,7 +378,11 @@ pub(crate) fn check_layout(
         return None;
     }
     if bytes[..8] != MAGIC {
-        let _ = sink(FormatError::new(ErrorCode::BadMagic, 0, "not a .vdag file (bad magic)"));
+        let _ = sink(FormatError::new(
+            ErrorCode::BadMagic,
+            0,
+            "not a .vdag file (bad magic)",
+        ));
         return None;
     }
     let raw: RawHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_SIZE]);
@@ -385,7 +406,10 @@ pub(crate) fn check_layout(
         report!(FormatError::new(
             ErrorCode::UnknownRequiredFeature,
             16,
-            format!("unknown required feature bits {:#x}", header.required_features),
+            format!(
+                "unknown required feature bits {:#x}",
+                header.required_features
+            ),
         ));
     }
     let header_size = u32::from_le(raw.header_size);
@@ -401,7 +425,10 @@ pub(crate) fn check_layout(
         report!(FormatError::new(
             ErrorCode::DepthOutOfRange,
             24,
-            format!("depth {} is outside {MIN_DEPTH}..={MAX_DEPTH}", header.depth),
+            format!(
+                "depth {} is outside {MIN_DEPTH}..={MAX_DEPTH}",
+                header.depth
+            ),
         ));
     }
     if !header.root_min.iter().all(|v| v.is_finite())
@@ -419,7 +446,11 @@ pub(crate) fn check_layout(
     }
     if checks.thorough {
         if raw.reserved0 != 0 {
-            report!(FormatError::new(ErrorCode::NonzeroReserved, 28, "header reserved field at byte 28 is not zero"));
+            report!(FormatError::new(
+                ErrorCode::NonzeroReserved,
+                28,
+                "header reserved field at byte 28 is not zero"
+            ));
         }
         if let Some(i) = raw.reserved1.iter().position(|&b| b != 0) {
             let at = std::mem::offset_of!(RawHeader, reserved1) + i;
@@ -434,14 +465,20 @@ pub(crate) fn check_layout(
         report!(FormatError::new(
             ErrorCode::FileTooLarge,
             0,
-            format!("file is {len} bytes, over the {}-byte limit", checks.max_file_size),
+            format!(
+                "file is {len} bytes, over the {}-byte limit",
+                checks.max_file_size
+            ),
         ));
     }
     if header.file_size != len {
         report!(FormatError::new(
             ErrorCode::FileSizeMismatch,
             64,
-            format!("header says {} bytes but the file has {len}", header.file_size),
+            format!(
+                "header says {} bytes but the file has {len}",
+                header.file_size
+            ),
         ));
     }
     let count = header.section_count;
@@ -467,7 +504,9 @@ pub(crate) fn check_layout(
         return None;
     }
     if checks.thorough {
-        let head: &[u8; HEADER_SIZE] = bytes[..HEADER_SIZE].try_into().expect("length checked above");
+        let head: &[u8; HEADER_SIZE] = bytes[..HEADER_SIZE]
+            .try_into()
+            .expect("length checked above");
         let computed = layout::header_checksum(head, &bytes[HEADER_SIZE..table_end]);
         if computed != header.header_crc {
             report!(FormatError::new(
@@ -490,7 +529,8 @@ pub(crate) fn check_layout(
     let mut seen_colors = false;
     for index in 0..count {
         let at = HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE;
-        let raw: RawSectionEntry = bytemuck::pod_read_unaligned(&bytes[at..at + SECTION_ENTRY_SIZE]);
+        let raw: RawSectionEntry =
+            bytemuck::pod_read_unaligned(&bytes[at..at + SECTION_ENTRY_SIZE]);
         let (entry, kind_known) = match decode_section_entry(index, &raw) {
             Ok(entry) => (entry, true),
             Err(e) => {
@@ -500,18 +540,28 @@ pub(crate) fn check_layout(
             }
         };
         if checks.thorough {
-            for (field, value) in [(6, u32::from(u16::from_le(raw.reserved0))), (36, u32::from_le(raw.reserved1))] {
+            for (field, value) in [
+                (6, u32::from(u16::from_le(raw.reserved0))),
+                (36, u32::from_le(raw.reserved1)),
+            ] {
                 if value != 0 {
                     report!(FormatError::new(
                         ErrorCode::NonzeroReserved,
                         (at + field) as u64,
-                        format!("reserved field at byte {field} of section entry {index} is not zero"),
+                        format!(
+                            "reserved field at byte {field} of section entry {index} is not zero"
+                        ),
                     ));
                 }
             }
         }
         let mut ok = kind_known;
-        let place = EntryPlace { bytes, previous_end, attribute_kind, kind_known };
+        let place = EntryPlace {
+            bytes,
+            previous_end,
+            attribute_kind,
+            kind_known,
+        };
         ok &= check_section_entry(&header, &entry, &place, checks, sink)?;
         // (A colour section among the level sections was reported as misplaced.)
         if entry.kind == SectionKind::VoxelColors && index > u16::from(header.depth) - 2 {
@@ -532,10 +582,18 @@ pub(crate) fn check_layout(
         report!(FormatError::new(
             ErrorCode::BadPadding,
             previous_end,
-            format!("{} bytes follow the end of the last section", len - previous_end),
+            format!(
+                "{} bytes follow the end of the last section",
+                len - previous_end
+            ),
         ));
     }
-    Some(Layout { header, sections, attribute_kind_known, usable })
+    Some(Layout {
+        header,
+        sections,
+        attribute_kind_known,
+        usable,
+    })
 }
 
 /// What [`check_section_entry`] needs to know besides the entry.
@@ -572,7 +630,10 @@ fn check_section_entry(
     let file_len = place.bytes.len() as u64;
     let previous_end = place.previous_end;
     let mut usable = true;
-    let in_bounds = entry.offset.checked_add(entry.length).is_some_and(|e| e <= file_len);
+    let in_bounds = entry
+        .offset
+        .checked_add(entry.length)
+        .is_some_and(|e| e <= file_len);
     if !in_bounds {
         report!(FormatError::new(
             ErrorCode::SectionOutOfBounds,
@@ -589,7 +650,10 @@ fn check_section_entry(
         report!(FormatError::new(
             ErrorCode::SectionMisaligned,
             at + 8,
-            format!("section {index} starts at {}, not a multiple of {SECTION_ALIGN}", entry.offset),
+            format!(
+                "section {index} starts at {}, not a multiple of {SECTION_ALIGN}",
+                entry.offset
+            ),
         ));
     }
     if entry.offset < previous_end {
@@ -615,7 +679,10 @@ fn check_section_entry(
             ));
         }
         // Empty when the previous section already ran past the end of the file.
-        let gap = place.bytes.get(previous_end as usize..entry.offset.min(file_len) as usize).unwrap_or(&[]);
+        let gap = place
+            .bytes
+            .get(previous_end as usize..entry.offset.min(file_len) as usize)
+            .unwrap_or(&[]);
         if let Some(i) = gap.iter().position(|&b| b != 0) {
             let byte = previous_end + i as u64;
             report!(FormatError::new(
@@ -628,7 +695,11 @@ fn check_section_entry(
     let leaf_level = header.depth - 2;
     if index <= u16::from(leaf_level) {
         let level = index as u8;
-        let expected = if level == leaf_level { SectionKind::LeafLevel } else { SectionKind::NodeLevel };
+        let expected = if level == leaf_level {
+            SectionKind::LeafLevel
+        } else {
+            SectionKind::NodeLevel
+        };
         if !place.kind_known {
             usable = false;
         } else if entry.kind != expected || entry.level != level {
@@ -650,73 +721,97 @@ fn check_section_entry(
         report!(FormatError::new(
             ErrorCode::BadLevelSections,
             at,
-            format!("section {index}: extra level section after the {} level sections", leaf_level + 1),
+            format!(
+                "section {index}: extra level section after the {} level sections",
+                leaf_level + 1
+            ),
         ));
         return Some(false);
     }
     match entry.kind {
         SectionKind::NodeLevel => {
             if !(1..=4).contains(&entry.pointer_width) {
-                report!(FormatError::new(
-                    ErrorCode::BadPointerWidth,
-                    at + 5,
-                    format!("level {} has pointer width {}, not 1 to 4", entry.level, entry.pointer_width),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::BadPointerWidth,
+                        at + 5,
+                        format!(
+                            "level {} has pointer width {}, not 1 to 4",
+                            entry.level, entry.pointer_width
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
                 usable = false;
             }
             if entry.length > MAX_NODE_LEVEL_BYTES {
-                report!(FormatError::new(
-                    ErrorCode::LevelTooLarge,
-                    at + 16,
-                    format!(
-                        "level {} has {} bytes, over the limit of {MAX_NODE_LEVEL_BYTES}",
-                        entry.level, entry.length
-                    ),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::LevelTooLarge,
+                        at + 16,
+                        format!(
+                            "level {} has {} bytes, over the limit of {MAX_NODE_LEVEL_BYTES}",
+                            entry.level, entry.length
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
             } else if !checks.thorough && entry.item_count > entry.length / 8 {
                 // The validator counts the records instead.
-                report!(FormatError::new(
-                    ErrorCode::ItemCountMismatch,
-                    at + 24,
-                    format!(
-                        "level {} declares {} nodes in {} bytes (each node takes at least 8)",
-                        entry.level, entry.item_count, entry.length
-                    ),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::ItemCountMismatch,
+                        at + 24,
+                        format!(
+                            "level {} declares {} nodes in {} bytes (each node takes at least 8)",
+                            entry.level, entry.item_count, entry.length
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
             }
         }
         SectionKind::LeafLevel => {
             if entry.pointer_width != 0 {
-                report!(FormatError::new(
-                    ErrorCode::BadPointerWidth,
-                    at + 5,
-                    format!("the leaf level has pointer width {}, must be 0", entry.pointer_width),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::BadPointerWidth,
+                        at + 5,
+                        format!(
+                            "the leaf level has pointer width {}, must be 0",
+                            entry.pointer_width
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
             }
             if entry.item_count > MAX_LEAF_COUNT {
-                report!(FormatError::new(
-                    ErrorCode::LevelTooLarge,
-                    at + 24,
-                    format!("{} leaves exceed the limit of {MAX_LEAF_COUNT}", entry.item_count),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::LevelTooLarge,
+                        at + 24,
+                        format!(
+                            "{} leaves exceed the limit of {MAX_LEAF_COUNT}",
+                            entry.item_count
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
             }
             if entry.item_count.checked_mul(8) != Some(entry.length) {
-                report!(FormatError::new(
-                    ErrorCode::ItemCountMismatch,
-                    at + 24,
-                    format!(
-                        "{} leaves need {} bytes, section has {}",
-                        entry.item_count,
-                        entry.item_count.saturating_mul(8),
-                        entry.length
-                    ),
-                )
-                .at_level(entry.level));
+                report!(
+                    FormatError::new(
+                        ErrorCode::ItemCountMismatch,
+                        at + 24,
+                        format!(
+                            "{} leaves need {} bytes, section has {}",
+                            entry.item_count,
+                            entry.item_count.saturating_mul(8),
+                            entry.length
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
             }
         }
         SectionKind::VoxelColors => {
@@ -724,10 +819,15 @@ fn check_section_entry(
                 report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
-                    format!("the colour section has pointer width {}, must be 0", entry.pointer_width),
+                    format!(
+                        "the colour section has pointer width {}, must be 0",
+                        entry.pointer_width
+                    ),
                 ));
             }
-            let kind_wrong = place.attribute_kind.is_some_and(|k| k != AttributeKind::VoxelCount);
+            let kind_wrong = place
+                .attribute_kind
+                .is_some_and(|k| k != AttributeKind::VoxelCount);
             if kind_wrong
                 || entry.item_count != header.voxel_count
                 || entry.item_count.checked_mul(4) != Some(entry.length)
@@ -760,7 +860,9 @@ impl<'a> Dag<'a> {
     /// Checksums, padding and the node graph are checked by
     /// [`crate::validate::validate`], and every later access is bounds-checked.
     pub fn open(bytes: &'a [u8]) -> Result<Self, FormatError> {
-        let Layout { header, sections, .. } = parse_layout(bytes)?;
+        let Layout {
+            header, sections, ..
+        } = parse_layout(bytes)?;
         let level_count = usize::from(header.depth) - 1;
         let mut levels = Vec::with_capacity(level_count);
         let mut colors = None;
@@ -780,10 +882,22 @@ impl<'a> Dag<'a> {
                 SectionKind::UnknownOptional(_) => {}
             }
         }
-        let dag = Dag { bytes, header, sections, levels, colors };
+        let dag = Dag {
+            bytes,
+            header,
+            sections,
+            levels,
+            colors,
+        };
         let root = &dag.levels[0];
         let empty = root.node_count == 0;
-        if root.node_count > 1 || (empty && dag.levels.iter().any(|l| l.node_count != 0 || !l.bytes.is_empty())) {
+        if root.node_count > 1
+            || (empty
+                && dag
+                    .levels
+                    .iter()
+                    .any(|l| l.node_count != 0 || !l.bytes.is_empty()))
+        {
             return Err(FormatError::new(
                 ErrorCode::BadRootLevel,
                 dag.sections[0].entry_offset() + 24,
@@ -852,47 +966,78 @@ impl<'a> Dag<'a> {
 
     /// The root node, or `None` for an empty volume.
     pub fn root(&self) -> Option<NodeRef> {
-        (!self.is_empty()).then_some(NodeRef { level: 0, pointer: 0 })
+        (!self.is_empty()).then_some(NodeRef {
+            level: 0,
+            pointer: 0,
+        })
     }
 
     /// The interior node at `word` of interior level `level`.
     pub fn node(&self, level: u8, word: u32) -> Result<Node<'a>, FormatError> {
-        let section = self.levels.get(usize::from(level)).filter(|s| !s.is_leaf).ok_or_else(|| {
-            FormatError::new(ErrorCode::PointerOutOfRange, 0, format!("level {level} is not an interior level"))
-        })?;
+        let section = self
+            .levels
+            .get(usize::from(level))
+            .filter(|s| !s.is_leaf)
+            .ok_or_else(|| {
+                FormatError::new(
+                    ErrorCode::PointerOutOfRange,
+                    0,
+                    format!("level {level} is not an interior level"),
+                )
+            })?;
         let at = word as usize * 4;
         let header = read_u32(section.bytes, at).ok_or_else(|| {
             FormatError::new(
                 ErrorCode::PointerOutOfRange,
                 section.file_offset + at as u64,
-                format!("word {word} is outside level {level} ({} bytes)", section.bytes.len()),
+                format!(
+                    "word {word} is outside level {level} ({} bytes)",
+                    section.bytes.len()
+                ),
             )
             .at_level(level)
         })?;
         let width = section.pointer_width;
         let pointer_bytes = (header as u8).count_ones() as usize * usize::from(width);
-        let pointers = section.bytes.get(at + 4..at + 4 + pointer_bytes).ok_or_else(|| {
-            FormatError::new(
-                ErrorCode::TruncatedNode,
-                section.file_offset + at as u64,
-                format!("node at word {word} runs past the end of level {level}"),
-            )
-            .at_level(level)
-        })?;
-        Ok(Node { level, word, header, pointer_width: width, pointers })
+        let pointers = section
+            .bytes
+            .get(at + 4..at + 4 + pointer_bytes)
+            .ok_or_else(|| {
+                FormatError::new(
+                    ErrorCode::TruncatedNode,
+                    section.file_offset + at as u64,
+                    format!("node at word {word} runs past the end of level {level}"),
+                )
+                .at_level(level)
+            })?;
+        Ok(Node {
+            level,
+            word,
+            header,
+            pointer_width: width,
+            pointers,
+        })
     }
 
     /// The leaf mask at `index` of the leaf level.
     pub fn leaf(&self, index: u32) -> Result<LeafMask, FormatError> {
-        let section = self.levels.last().expect("depth >= 2 gives at least one level");
-        read_u64(section.bytes, index as usize * 8).map(LeafMask).ok_or_else(|| {
-            FormatError::new(
-                ErrorCode::PointerOutOfRange,
-                section.file_offset + u64::from(index) * 8,
-                format!("leaf {index} is outside the leaf level ({} leaves)", section.units()),
-            )
-            .at_level(section.level)
-        })
+        let section = self
+            .levels
+            .last()
+            .expect("depth >= 2 gives at least one level");
+        read_u64(section.bytes, index as usize * 8)
+            .map(LeafMask)
+            .ok_or_else(|| {
+                FormatError::new(
+                    ErrorCode::PointerOutOfRange,
+                    section.file_offset + u64::from(index) * 8,
+                    format!(
+                        "leaf {index} is outside the leaf level ({} leaves)",
+                        section.units()
+                    ),
+                )
+                .at_level(section.level)
+            })
     }
 
     /// World-space position of grid point `p` (voxel units, 0..2^D per axis).
@@ -938,24 +1083,47 @@ impl<'a> Dag<'a> {
 
     /// Whether voxel `(x, y, z)` is set. Coordinates outside the volume are not set.
     pub fn is_set(&self, x: u32, y: u32, z: u32) -> Result<bool, FormatError> {
-        Ok(self.descend(x, y, z, |_, _| Ok(()))?.is_some_and(|leaf| leaf.is_set(x, y, z)))
+        Ok(self
+            .descend(x, y, z, |_, _| Ok(()))?
+            .is_some_and(|leaf| leaf.is_set(x, y, z)))
     }
 
     /// Number of voxels in the subtree of `node`, using stored counts where the
     /// attribute kind is 1 and they are not saturated, else summing the children.
+    ///
+    /// Sums are memoised per node, so the work is linear in the number of nodes
+    /// visited even when long chains of saturated counts share subtrees (a full
+    /// volume at depth 21 is a few hundred bytes but has 2^63 voxels).
     pub fn subtree_voxel_count(&self, node: NodeRef) -> Result<u64, FormatError> {
+        self.subtree_voxel_count_memo(node, &mut rustc_hash::FxHashMap::default())
+    }
+
+    fn subtree_voxel_count_memo(
+        &self,
+        node: NodeRef,
+        memo: &mut rustc_hash::FxHashMap<NodeRef, u64>,
+    ) -> Result<u64, FormatError> {
         if node.level == self.leaf_level() {
             return Ok(u64::from(self.leaf(node.pointer)?.count()));
         }
         let n = self.node(node.level, node.pointer)?;
-        if self.header.attribute_kind == AttributeKind::VoxelCount && n.attribute() != COUNT_SATURATED {
+        if self.header.attribute_kind == AttributeKind::VoxelCount
+            && n.attribute() != COUNT_SATURATED
+        {
             return Ok(u64::from(n.attribute()));
+        }
+        if let Some(&known) = memo.get(&node) {
+            return Ok(known);
         }
         let mut total = 0u64;
         for rank in 0..n.child_count() {
-            let child = NodeRef { level: node.level + 1, pointer: n.pointer_at(rank) };
-            total = total.saturating_add(self.subtree_voxel_count(child)?);
+            let child = NodeRef {
+                level: node.level + 1,
+                pointer: n.pointer_at(rank),
+            };
+            total = total.saturating_add(self.subtree_voxel_count_memo(child, memo)?);
         }
+        memo.insert(node, total);
         Ok(total)
     }
 
@@ -964,10 +1132,16 @@ impl<'a> Dag<'a> {
     /// voxel is not set. Needs attribute kind 1 to be fast; works for any kind.
     pub fn voxel_index(&self, x: u32, y: u32, z: u32) -> Result<Option<u64>, FormatError> {
         let mut index = 0u64;
+        let mut memo = rustc_hash::FxHashMap::default();
         let leaf = self.descend(x, y, z, |node, child| {
             for c in 0..child {
                 if let Some(p) = node.child_pointer(c) {
-                    index += self.subtree_voxel_count(NodeRef { level: node.level + 1, pointer: p })?;
+                    let sibling = NodeRef {
+                        level: node.level + 1,
+                        pointer: p,
+                    };
+                    index =
+                        index.saturating_add(self.subtree_voxel_count_memo(sibling, &mut memo)?);
                 }
             }
             Ok(())
@@ -985,7 +1159,11 @@ impl<'a> Dag<'a> {
 }
 
 /// Iterator over the set voxels of a [`Dag`], in Morton order. Yields an error
-/// (once, then ends) when it meets a pointer that leads out of bounds.
+/// (once, then ends) when it meets a pointer that leads out of bounds, or an
+/// empty child mask or leaf mask (which a valid file never holds, E041 and
+/// E048). Refusing empty nodes bounds the work between two items by the depth:
+/// every node entered leads to a voxel within D − 2 steps, so a hostile file
+/// cannot make the iterator spin through 8^D empty paths without yielding.
 #[derive(Debug)]
 pub struct Voxels<'d, 'a> {
     dag: &'d Dag<'a>,
@@ -996,32 +1174,84 @@ pub struct Voxels<'d, 'a> {
     /// The current leaf's remaining bits and its Morton prefix.
     leaf: Option<(u64, u64)>,
     failed: bool,
+    /// An error met before the first item (an unreadable or empty root),
+    /// yielded by the first call.
+    pending: Option<FormatError>,
 }
 
 impl<'d, 'a> Voxels<'d, 'a> {
     fn new(dag: &'d Dag<'a>) -> Self {
-        let mut it = Voxels { dag, stack: Vec::new(), prefix: Vec::new(), leaf: None, failed: false };
+        let mut it = Voxels {
+            dag,
+            stack: Vec::new(),
+            prefix: Vec::new(),
+            leaf: None,
+            failed: false,
+            pending: None,
+        };
         if !dag.is_empty() {
-            if dag.leaf_level() == 0 {
-                match dag.leaf(0) {
-                    Ok(l) => it.leaf = Some((l.0, 0)),
-                    Err(_) => it.failed = true,
-                }
+            // A root that cannot be read (or is empty) is the first and
+            // only item.
+            let root = if dag.leaf_level() == 0 {
+                dag.leaf(0)
+                    .and_then(|l| it.nonempty_leaf(0, l))
+                    .map(|l| it.leaf = Some((l.0, 0)))
             } else {
-                match dag.node(0, 0) {
-                    Ok(root) => {
+                dag.node(0, 0)
+                    .and_then(|n| it.nonempty_node(n))
+                    .map(|root| {
                         it.stack.push((root, root.child_mask()));
                         it.prefix.push(0);
-                    }
-                    Err(_) => it.failed = true,
-                }
+                    })
+            };
+            if let Err(e) = root {
+                it.failed = true;
+                it.pending = Some(e);
             }
         }
         it
     }
 
+    /// `node`, or an error when its child mask is empty.
+    fn nonempty_node(&self, node: Node<'a>) -> Result<Node<'a>, FormatError> {
+        if node.child_mask() != 0 {
+            return Ok(node);
+        }
+        let section = &self.dag.levels[usize::from(node.level)];
+        Err(FormatError::new(
+            ErrorCode::EmptyChildMask,
+            section.file_offset + u64::from(node.word) * 4,
+            format!(
+                "node at word {} of level {} has an empty child mask",
+                node.word, node.level
+            ),
+        )
+        .at_level(node.level))
+    }
+
+    /// `leaf` (at `index` of the leaf level), or an error when it is empty.
+    fn nonempty_leaf(&self, index: u32, leaf: LeafMask) -> Result<LeafMask, FormatError> {
+        if leaf.0 != 0 {
+            return Ok(leaf);
+        }
+        let section = self
+            .dag
+            .levels
+            .last()
+            .expect("depth >= 2 gives a leaf level");
+        Err(FormatError::new(
+            ErrorCode::EmptyLeafMask,
+            section.file_offset + u64::from(index) * 8,
+            format!("leaf {index} is empty (a leaf holds at least one voxel)"),
+        )
+        .at_level(section.level))
+    }
+
     /// The next voxel's Morton code.
     pub fn next_morton(&mut self) -> Option<Result<u64, FormatError>> {
+        if let Some(e) = self.pending.take() {
+            return Some(Err(e));
+        }
         loop {
             if let Some((bits, prefix)) = &mut self.leaf {
                 if *bits != 0 {
@@ -1046,12 +1276,18 @@ impl<'d, 'a> Voxels<'d, 'a> {
             let prefix = self.prefix.last().copied().unwrap_or(0) << 3 | u64::from(child);
             let pointer = node.child_pointer(child).expect("bit is in the mask");
             let next = if node.level + 1 == self.dag.leaf_level() {
-                self.dag.leaf(pointer).map(|l| self.leaf = Some((l.0, prefix)))
+                self.dag
+                    .leaf(pointer)
+                    .and_then(|l| self.nonempty_leaf(pointer, l))
+                    .map(|l| self.leaf = Some((l.0, prefix)))
             } else {
-                self.dag.node(node.level + 1, pointer).map(|n| {
-                    self.stack.push((n, n.child_mask()));
-                    self.prefix.push(prefix);
-                })
+                self.dag
+                    .node(node.level + 1, pointer)
+                    .and_then(|n| self.nonempty_node(n))
+                    .map(|n| {
+                        self.stack.push((n, n.child_mask()));
+                        self.prefix.push(prefix);
+                    })
             };
             if let Err(e) = next {
                 self.failed = true;
@@ -1067,5 +1303,89 @@ impl Iterator for Voxels<'_, '_> {
 
     fn next(&mut self) -> Option<Self::Item> {
         self.next_morton().map(|r| r.map(morton::decode))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::layout::{SECTION_ENTRY_SIZE, node_record_size};
+
+    /// A full volume at depth 21: one node per level, every count saturated.
+    fn full_volume_depth_21() -> Vec<u8> {
+        let depth = MAX_DEPTH;
+        let levels = usize::from(depth) - 1;
+        let table_end = HEADER_SIZE + levels * SECTION_ENTRY_SIZE;
+        let mut sections: Vec<Vec<u8>> = Vec::new();
+        for _ in 0..levels - 1 {
+            let mut rec = (0xFFu32 | COUNT_SATURATED << 8).to_le_bytes().to_vec();
+            rec.extend_from_slice(&[0u8; 8]);
+            assert_eq!(rec.len() as u64, node_record_size(8, 1));
+            sections.push(rec);
+        }
+        sections.push(u64::MAX.to_le_bytes().to_vec());
+        let mut file = vec![0u8; table_end];
+        let mut offset = table_end as u64;
+        for (i, sec) in sections.iter().enumerate() {
+            let leaf = i == levels - 1;
+            // Sections start at multiples of 8 (the 12-byte records leave gaps).
+            offset = layout::align_section(offset);
+            file.resize(offset as usize, 0);
+            let entry = RawSectionEntry {
+                kind: if leaf {
+                    SectionKind::LEAF_LEVEL
+                } else {
+                    SectionKind::NODE_LEVEL
+                },
+                level: i as u8,
+                pointer_width: if leaf { 0 } else { 1 },
+                reserved0: 0,
+                offset,
+                length: sec.len() as u64,
+                item_count: 1,
+                crc: crc32c::crc32c(sec),
+                reserved1: 0,
+            };
+            let at = HEADER_SIZE + i * SECTION_ENTRY_SIZE;
+            file[at..at + SECTION_ENTRY_SIZE].copy_from_slice(bytemuck::bytes_of(&entry));
+            file.extend_from_slice(sec);
+            offset += sec.len() as u64;
+        }
+        let mut header: RawHeader = bytemuck::Zeroable::zeroed();
+        header.magic = MAGIC;
+        header.version_major = layout::VERSION_MAJOR;
+        header.header_size = HEADER_SIZE as u32;
+        header.depth = depth;
+        header.attribute_kind = 1;
+        header.section_count = levels as u16;
+        header.root_size = 1.0f64.to_bits();
+        header.file_size = file.len() as u64;
+        header.voxel_count = 1u64 << 63;
+        file[..HEADER_SIZE].copy_from_slice(bytemuck::bytes_of(&header));
+        let head: [u8; HEADER_SIZE] = file[..HEADER_SIZE].try_into().unwrap();
+        let crc = layout::header_checksum(&head, &file[HEADER_SIZE..table_end]);
+        file[layout::HEADER_CRC_OFFSET..HEADER_SIZE].copy_from_slice(&crc.to_le_bytes());
+        file
+    }
+
+    #[test]
+    fn saturated_counts_are_summed_in_linear_time() {
+        let bytes = full_volume_depth_21();
+        let dag = Dag::open(&bytes).unwrap();
+        assert_eq!(
+            dag.subtree_voxel_count(NodeRef {
+                level: 0,
+                pointer: 0
+            })
+            .unwrap(),
+            1 << 63
+        );
+        let last = (1u32 << 21) - 1;
+        // Without memoisation this walks 8^19 paths and never finishes.
+        assert_eq!(
+            dag.voxel_index(last, last, last).unwrap(),
+            Some((1u64 << 63) - 1)
+        );
+        assert_eq!(dag.voxel_index(1, 0, 0).unwrap(), Some(1));
     }
 }

@@ -22,6 +22,16 @@ pub const DEFAULT_LEVEL: i32 = 19;
 /// The size limit [`unpack`] callers use unless told otherwise.
 pub const DEFAULT_MAX_SIZE: u64 = MAX_FILE_SIZE;
 
+/// The most bytes one zstd frame can decode to, per byte of the frame: the
+/// densest block is a 4-byte RLE block (3-byte block header and the byte to
+/// repeat) that expands to at most 128 KiB. [`unpack`] refuses a frame that
+/// declares more than this many times its own length, and never lets the
+/// decoder open a window larger than that (see spec/VDAG.md § 16.2).
+pub const MAX_EXPANSION: u64 = 32 * 1024;
+
+/// The smallest and largest decoder windows (log2 bytes) zstd knows.
+const WINDOW_LOG_RANGE: std::ops::RangeInclusive<u32> = 10..=31;
+
 /// Why packing or unpacking failed.
 #[derive(Debug, Error)]
 pub enum TransportError {
@@ -120,20 +130,36 @@ pub fn pack_to<R: Read, W: Write>(
 /// declare their size), so hostile input cannot make it allocate more than
 /// `max_size` bytes. Also refuses trailing bytes after the frame and output
 /// that is not a `.vdag` file.
+///
+/// Memory is bounded by the input as well (spec/VDAG.md § 16.2): a frame
+/// cannot decode to more than [`MAX_EXPANSION`] times its length, so a frame
+/// declaring more is refused as corrupt before decoding, and the decoder's
+/// window (the one buffer zstd sizes from the frame header) is capped at the
+/// smallest power of two holding `min(max_size, MAX_EXPANSION * zst.len())`.
+/// In all, unpacking allocates at most about four times that bound plus a
+/// constant (the decoder's state and one 128 KiB chunk).
 pub fn unpack(zst: &[u8], max_size: u64) -> Result<Vec<u8>, TransportError> {
     if !is_transport(zst) {
         return Err(TransportError::NotZstd);
     }
     let declared = zstd::zstd_safe::get_frame_content_size(zst)
         .map_err(|_| TransportError::Corrupt("unreadable frame header".into()))?;
-    if let Some(size) = declared
-        && size > max_size
-    {
-        return Err(TransportError::TooLarge {
-            size,
-            limit: max_size,
-        });
+    let possible = MAX_EXPANSION.saturating_mul(zst.len() as u64);
+    if let Some(size) = declared {
+        if size > max_size {
+            return Err(TransportError::TooLarge {
+                size,
+                limit: max_size,
+            });
+        }
+        if size > possible {
+            return Err(TransportError::Corrupt(format!(
+                "the frame declares {size} bytes, more than a {}-byte frame can hold",
+                zst.len()
+            )));
+        }
     }
+    let output_bound = max_size.min(possible);
     let frame_len = zstd::zstd_safe::find_frame_compressed_size(zst).map_err(|code| {
         TransportError::Corrupt(zstd::zstd_safe::get_error_name(code).to_string())
     })?;
@@ -149,6 +175,11 @@ pub fn unpack(zst: &[u8], max_size: u64) -> Result<Vec<u8>, TransportError> {
         .min(max_size);
     let mut out: Vec<u8> = Vec::with_capacity(guess as usize);
     let mut decoder = zstd::stream::read::Decoder::with_buffer(zst)?.single_frame();
+    // A frame never needs a window larger than its output, which is at most
+    // `output_bound`; a larger window would only make zstd allocate it.
+    let window_log = (u64::BITS - output_bound.saturating_sub(1).leading_zeros())
+        .clamp(*WINDOW_LOG_RANGE.start(), *WINDOW_LOG_RANGE.end());
+    decoder.window_log_max(window_log)?;
     let mut chunk = vec![0u8; 1 << 17];
     loop {
         let n = decoder

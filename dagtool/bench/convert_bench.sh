@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 # Benchmarks of `dagtool convert` (release build), printed as Markdown tables.
 #
-#   dagtool/bench/convert_bench.sh [what...]      what: dragon14 dragon16 vdb sizes (default: all)
+#   dagtool/bench/convert_bench.sh [what...]      what: dragon14 dragon16 solid14 vdb sizes
+#                                                 (default: all)
 #
 # Environment: MESHES (default ../shared/meshes beside the repository), RUNS (default 3),
 # OUT (scratch folder, default a temporary folder, removed afterwards), CARGO_TARGET_DIR.
 #
 # - dragon14: dragon.obj at depth 14, RUNS runs: wall time, user CPU time, peak RSS.
 # - dragon16: dragon.obj at depth 16, once: wall time, peak RSS.
+# - solid14:  dragon.obj at depth 14 with --solid, once: wall time, peak RSS.
 # - vdb:      OpenVDB's vdb_tool (mesh to level set, 2048^3, narrow band of 1 voxel) against
 #             `dagtool convert` at depth 11 (2048^3), RUNS runs each, medians of wall time and
 #             peak RSS (/usr/bin/time -v), and the output sizes.
@@ -20,7 +22,7 @@ cd "$(dirname "$0")/../.."
 ROOT=$(pwd)
 MESHES=${MESHES:-$ROOT/../shared/meshes}
 RUNS=${RUNS:-3}
-WHAT=${*:-dragon14 dragon16 vdb sizes}
+WHAT=${*:-dragon14 dragon16 solid14 vdb sizes}
 if [ ! -d "$MESHES" ]; then
     echo "meshes not found at $MESHES (set MESHES)" >&2
     exit 1
@@ -78,6 +80,17 @@ dragon16)
     rm -f "$SCRATCH/dragon16.vdag"
     echo
     ;;
+solid14)
+    echo "### dragon.obj at depth 14 with --solid (once; load average $(load))"
+    echo
+    read -r wall user rss < <(measure "$DAGTOOL" convert "$MESHES/dragon.obj" -o "$SCRATCH/solid14.vdag" --depth 14 --solid --force -q)
+    echo "| wall (s) | user CPU (s) | peak RSS (MiB) | file bytes |"
+    echo "|---|---|---|---|"
+    echo "| $wall | $user | $((rss / 1024)) | $(stat -c %s "$SCRATCH/solid14.vdag") |"
+    "$DAGTOOL" validate "$SCRATCH/solid14.vdag" >/dev/null && echo && echo "output valid"
+    rm -f "$SCRATCH/solid14.vdag"
+    echo
+    ;;
 vdb)
     if ! command -v vdb_tool >/dev/null; then
         echo "vdb_tool not installed: skipping the OpenVDB comparison"
@@ -130,7 +143,7 @@ EOF
     echo
     ;;
 *)
-    echo "unknown benchmark $what (dragon14 dragon16 vdb sizes)" >&2
+    echo "unknown benchmark $what (dragon14 dragon16 solid14 vdb sizes)" >&2
     exit 2
     ;;
 esac

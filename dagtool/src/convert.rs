@@ -13,7 +13,9 @@ use crate::error::ConvertError;
 use crate::mesh::{DEFAULT_COLOR, GridMapping, Mesh, SnappedMesh};
 use crate::output::{check_output, write_atomic};
 use crate::pipeline::{self, Bins, ChunkOutput, SolidMode, VoxelizeConfig};
-use crate::sysinfo::{current_rss, human_bytes, peak_rss, total_memory};
+use crate::sysinfo::{
+    current_rss, human_bytes, peak_rss, process_cpu_seconds, thread_cpu_seconds, total_memory,
+};
 use crate::voxelize::{MAX_CHUNK_BITS, MIN_CHUNK_BITS, NO_TAG};
 use crate::voxlist;
 
@@ -96,6 +98,8 @@ pub struct ConvertSummary {
     pub surface_chunks: u64,
     /// Chunks filled by the solid fill only.
     pub fill_chunks: u64,
+    /// Worker threads.
+    pub threads: usize,
     /// Triangle-chunk pairs.
     pub bin_entries: u64,
     /// Set voxels.
@@ -114,6 +118,10 @@ pub struct ConvertSummary {
     pub total_seconds: f64,
     /// Peak resident set size (`VmHWM`).
     pub peak_rss: Option<u64>,
+    /// CPU seconds of the whole process.
+    pub cpu_seconds: Option<f64>,
+    /// CPU seconds of the thread that runs the DAG builder (and loads, writes).
+    pub main_thread_cpu_seconds: Option<f64>,
     /// Warnings (e.g. materials not loaded).
     pub warnings: Vec<String>,
 }
@@ -136,8 +144,12 @@ impl ConvertSummary {
         if self.chunk_side > 0 {
             let _ = writeln!(
                 s,
-                "chunks:   {}^3 voxels each; {} with triangles ({} triangle-chunk pairs), {} filled inside",
-                self.chunk_side, self.surface_chunks, self.bin_entries, self.fill_chunks
+                "chunks:   {}^3 voxels each; {} with triangles ({} triangle-chunk pairs), {} filled inside; {} threads",
+                self.chunk_side,
+                self.surface_chunks,
+                self.bin_entries,
+                self.fill_chunks,
+                self.threads
             );
         }
         let _ = writeln!(s, "fill:     {}", self.fill);
@@ -170,6 +182,12 @@ impl ConvertSummary {
             "time:     {:.2} s (load {:.2} s, voxelize and build {:.2} s, write {:.2} s)",
             self.total_seconds, self.load_seconds, self.build_seconds, self.write_seconds
         );
+        if let (Some(all), Some(main)) = (self.cpu_seconds, self.main_thread_cpu_seconds) {
+            let _ = writeln!(
+                s,
+                "cpu:      {all:.2} s in all threads, {main:.2} s in the main thread (load, DAG builder, write)"
+            );
+        }
         match self.peak_rss {
             Some(b) => {
                 let _ = write!(s, "peak RSS: {} ({b} bytes)", human_bytes(b));
@@ -261,6 +279,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     };
     summary.total_seconds = start.elapsed().as_secs_f64();
     summary.peak_rss = peak_rss();
+    summary.cpu_seconds = process_cpu_seconds();
+    summary.main_thread_cpu_seconds = thread_cpu_seconds();
     Ok(summary)
 }
 
@@ -501,6 +521,7 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
     bar.finish_and_clear();
     let report = report?;
     summary.surface_chunks = report.surface_chunks;
+    summary.threads = threads;
     summary.fill_chunks = report.fill_chunks;
     drop(bins);
     drop(snapped);

@@ -8,18 +8,25 @@
 //! - [`voxlist`]: the text and binary voxel list formats;
 //! - [`convert`]: the `convert` command (pipeline + builder + atomic output);
 //! - [`output`]: atomic file output;
-//! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`.
+//! - [`demo`]: the whole pipeline on a built-in scene;
+//! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`;
+//! - [`verify`]: the `verify` command (ray casts on the mesh and on the DAG);
+//! - `fuzzing` (hidden): the harnesses of the importer fuzz targets in `fuzz/`.
 #![deny(missing_docs)]
 
 pub mod cmd;
 pub mod convert;
+pub mod demo;
 pub mod error;
+#[doc(hidden)]
+pub mod fuzzing;
 pub mod geom;
 pub mod mesh;
 pub mod output;
 pub mod pipeline;
 pub mod solid;
 pub mod sysinfo;
+pub mod verify;
 pub mod voxelize;
 pub mod voxlist;
 

@@ -7,6 +7,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use dagtool::ConvertError;
 use dagtool::cmd;
 use dagtool::convert::{self, ConvertOptions, InputFormat};
+use dagtool::output::{StdoutReport, print_stdout};
 use dagtool::sysinfo::parse_size;
 
 const CONVERT_HELP: &str = "\
@@ -127,6 +128,47 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Check a conversion: cast the same rays at the source mesh (obvhs) and at
+    /// the DAG (CPU tracer) and compare hits. Exit status: 0 every criterion
+    /// holds, 1 some criterion fails, 2 usage or I/O error.
+    #[command(after_long_help = dagtool::verify::HELP)]
+    Verify {
+        /// The source mesh (OBJ), in the coordinates it was converted from.
+        mesh: PathBuf,
+        /// The .vdag (or .vdag.zst) file converted from it.
+        file: PathBuf,
+        /// Rays in all (1..=50000000): half random rays through the root cube,
+        /// half camera rays.
+        #[arg(long, default_value_t = 1_000_000)]
+        rays: usize,
+        /// Seed of the random rays and camera viewpoints.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The whole pipeline on a built-in scene: make a procedural mesh, convert,
+    /// validate, render a PNG (GPU when an adapter exists, else CPU), and run
+    /// the conformance suite. Exit status 1 when a conformance case fails.
+    Demo {
+        /// Directory to write into (created; only a directory made by the demo
+        /// is ever written into again).
+        #[arg(long, default_value = "vdag-demo")]
+        out: PathBuf,
+        /// Conversion depth.
+        #[arg(long, default_value_t = 10)]
+        depth: u32,
+        /// Image width.
+        #[arg(long, default_value_t = 960)]
+        width: u32,
+        /// Image height.
+        #[arg(long, default_value_t = 540)]
+        height: u32,
+        /// Use the CPU tracer even when a GPU adapter exists.
+        #[arg(long)]
+        cpu: bool,
+    },
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -206,38 +248,53 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
     opts.progress = !args.quiet;
     opts.memory_limit = memory_limit;
     opts.chunk_bits = args.chunk_bits;
-    let run = || convert::convert(&opts);
-    let summary = match args.threads {
+    match args.threads {
         Some(0) => return Err(ConvertError::Usage("--threads must be at least 1".into())),
+        // The global pool: the pipeline's producer thread uses it too.
         Some(n) => rayon::ThreadPoolBuilder::new()
             .num_threads(n)
-            .build()
-            .map_err(|e| ConvertError::Usage(format!("cannot start {n} threads: {e}")))?
-            .install(run)?,
-        None => run()?,
-    };
+            .build_global()
+            .map_err(|e| ConvertError::Usage(format!("cannot start {n} threads: {e}")))?,
+        None => {}
+    }
+    let summary = convert::convert(&opts).map_err(|e| name_the_input(e, &args.input))?;
     if !args.quiet {
-        println!("{}", summary.render(&args.output));
+        print_stdout(&format!("{}\n", summary.render(&args.output)))?;
     }
     Ok(())
+}
+
+/// Makes a message about the input's contents name the input ("the mesh has
+/// no triangles" becomes "cube.obj: the mesh has no triangles").
+fn name_the_input(error: ConvertError, input: &std::path::Path) -> ConvertError {
+    match error {
+        ConvertError::Input(message) if !message.contains(&*input.to_string_lossy()) => {
+            ConvertError::Input(format!("{}: {message}", input.display()))
+        }
+        other => other,
+    }
 }
 
 fn run(cli: Cli) -> Result<i32, ConvertError> {
     match cli.command {
         Command::Convert(args) => convert_cmd(args).map(|()| 0),
         Command::Validate { files, json } => {
-            let stdout = std::io::stdout();
             let stderr = std::io::stderr();
-            let outcome = cmd::validate::run(&files, json, &mut stdout.lock(), &mut stderr.lock())
-                .map_err(|e| ConvertError::io("cannot write the report", e))?;
-            Ok(outcome.exit_code())
+            // 1 means "invalid", so failing to write the report is 2.
+            match cmd::validate::run(&files, json, &mut StdoutReport::new(), &mut stderr.lock()) {
+                Ok(outcome) => Ok(outcome.exit_code()),
+                Err(e) => {
+                    eprintln!("dagtool: error: cannot write the report: {e}");
+                    Ok(2)
+                }
+            }
         }
         Command::Info { file, json } => {
-            println!("{}", cmd::info::run(&file, json)?);
+            print_stdout(&format!("{}\n", cmd::info::run(&file, json)?))?;
             Ok(0)
         }
         Command::Dump { file, nodes } => {
-            print!("{}", cmd::dump::run(&file, nodes)?);
+            print_stdout(&cmd::dump::run(&file, nodes)?)?;
             Ok(0)
         }
         Command::Pack {
@@ -252,13 +309,56 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 )));
             }
             let (a, b) = cmd::pack::pack(&input, &output, level, force)?;
-            println!(
-                "{}: {a} bytes -> {}: {b} bytes ({:.1}%)",
+            print_stdout(&format!(
+                "{}: {a} bytes -> {}: {b} bytes ({:.1}%)\n",
                 input.display(),
                 output.display(),
                 100.0 * b as f64 / a.max(1) as f64
-            );
+            ))?;
             Ok(0)
+        }
+        Command::Demo {
+            out,
+            depth,
+            width,
+            height,
+            cpu,
+        } => {
+            if width == 0 || height == 0 || width > 16384 || height > 16384 {
+                return Err(ConvertError::Usage(format!(
+                    "image size {width}x{height} is outside 1..=16384"
+                )));
+            }
+            let opts = dagtool::demo::DemoOptions {
+                out_dir: out,
+                depth: convert::check_depth(depth)?,
+                width,
+                height,
+                cpu_only: cpu,
+            };
+            Ok(if dagtool::demo::run(&opts)? { 0 } else { 1 })
+        }
+        Command::Verify {
+            mesh,
+            file,
+            rays,
+            seed,
+            json,
+        } => {
+            let opts = dagtool::verify::VerifyOptions {
+                mesh,
+                dag: file,
+                rays,
+                seed,
+            };
+            // Like `validate`: 1 means "fails the criteria", so every error is 2.
+            match dagtool::verify::run(&opts, json) {
+                Ok(code) => Ok(code),
+                Err(e) => {
+                    eprintln!("dagtool: error: {e}");
+                    Ok(2)
+                }
+            }
         }
         Command::Unpack {
             input,
@@ -273,11 +373,11 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 None => dagfmt::transport::DEFAULT_MAX_SIZE,
             };
             let (a, b) = cmd::pack::unpack(&input, &output, max, force)?;
-            println!(
-                "{}: {a} bytes -> {}: {b} bytes (valid)",
+            print_stdout(&format!(
+                "{}: {a} bytes -> {}: {b} bytes (valid)\n",
                 input.display(),
                 output.display()
-            );
+            ))?;
             Ok(0)
         }
     }
@@ -292,9 +392,17 @@ fn main() -> ExitCode {
                 let _ = e.print();
                 return ExitCode::SUCCESS;
             }
+            // clap's message, up to its usage and tips, as one line (the
+            // missing arguments are listed on the lines after the first).
             let text = e.to_string();
-            let first = text.lines().next().unwrap_or("invalid arguments");
-            let first = first.strip_prefix("error: ").unwrap_or(first);
+            let message: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("tip:"))
+                .filter(|l| !l.is_empty())
+                .collect();
+            let first = message.join(" ");
+            let first = first.strip_prefix("error: ").unwrap_or(&first);
             eprintln!("dagtool: error: {first} (see dagtool --help)");
             return ExitCode::from(2);
         }

@@ -36,19 +36,54 @@ impl Mesh {
         }
     }
 
+    /// The options every OBJ is loaded with: polygons triangulated as fans,
+    /// one index per position.
+    fn obj_options() -> tobj::LoadOptions {
+        tobj::LoadOptions {
+            triangulate: true,
+            single_index: false,
+            ..Default::default()
+        }
+    }
+
     /// Loads every model and group of a Wavefront OBJ file, triangulating
     /// polygons (as fans). Points and lines in the file become zero-area
     /// triangles (tobj's behaviour), which the voxelizer treats as points and
     /// segments.
     pub fn load_obj(path: &Path) -> Result<Mesh, ConvertError> {
-        let options = tobj::LoadOptions {
-            triangulate: true,
-            single_index: false,
-            ..Default::default()
-        };
-        let (models, materials) = tobj::load_obj(path, &options).map_err(|e| {
-            ConvertError::Input(format!("cannot read OBJ file {}: {e}", path.display()))
-        })?;
+        let name = path.display().to_string();
+        let file = std::fs::File::open(path)
+            .map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
+        let mut guarded = IndexGuard::new(std::io::BufReader::new(file));
+        // What `tobj::load_obj` does, with the index guard in between:
+        // material libraries are looked up next to the OBJ file.
+        let loaded = tobj::load_obj_buf(&mut guarded, &Self::obj_options(), |mtl| {
+            tobj::load_mtl(
+                path.parent()
+                    .map_or_else(|| mtl.to_owned(), |p| p.join(mtl)),
+            )
+        });
+        guarded.check(&name)?;
+        Self::from_tobj(loaded, &name)
+    }
+
+    /// Loads an OBJ held in memory, like [`Mesh::load_obj`] but without
+    /// touching the file system: `mtllib` statements are not followed (the
+    /// mesh gets a material warning and default colours). `name` names the
+    /// input in messages.
+    pub fn load_obj_bytes(bytes: &[u8], name: &str) -> Result<Mesh, ConvertError> {
+        let mut guarded = IndexGuard::new(bytes);
+        let loaded = tobj::load_obj_buf(&mut guarded, &Self::obj_options(), |_| {
+            Err(tobj::LoadError::OpenFileFailed)
+        });
+        guarded.check(name)?;
+        Self::from_tobj(loaded, name)
+    }
+
+    /// The mesh of what tobj loaded from `name`.
+    fn from_tobj(loaded: tobj::LoadResult, name: &str) -> Result<Mesh, ConvertError> {
+        let (models, materials) =
+            loaded.map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
         let mut mesh = Mesh::default();
         match materials {
             Ok(materials) => {
@@ -75,8 +110,7 @@ impl Mesh {
             let base = mesh.vertices.len();
             if base + m.positions.len() / 3 > u32::MAX as usize {
                 return Err(ConvertError::Input(format!(
-                    "{}: more than 2^32 vertices",
-                    path.display()
+                    "{name}: more than 2^32 vertices"
                 )));
             }
             mesh.vertices.extend(
@@ -167,6 +201,122 @@ impl Mesh {
             max,
             degenerate,
         })
+    }
+}
+
+/// The largest positive vertex, texture or normal index accepted in a face.
+/// Larger ones cannot address anything (a mesh holds fewer than 2^32
+/// vertices) and would overflow tobj's index arithmetic.
+const MAX_OBJ_INDEX: i64 = 1 << 32;
+
+/// A reader between the OBJ text and tobj that refuses, with a message naming
+/// the line, face indices tobj does not handle safely: indices of 0, above
+/// [`MAX_OBJ_INDEX`], or relative (negative) indices reaching before the first
+/// element of their kind. (tobj turns those into indices near 2^64 and
+/// multiplies them unchecked, which panics in builds with overflow checks.)
+/// Everything else is passed through unchanged; tobj reports its own errors.
+struct IndexGuard<R> {
+    inner: R,
+    /// The current line, handed to tobj from `pos` on.
+    line: Vec<u8>,
+    pos: usize,
+    /// Lines read so far.
+    number: u64,
+    /// Positions, texture coordinates and normals declared so far.
+    declared: [i64; 3],
+    /// The first refused line's message.
+    error: Option<String>,
+}
+
+impl<R: std::io::BufRead> IndexGuard<R> {
+    fn new(inner: R) -> Self {
+        IndexGuard {
+            inner,
+            line: Vec::new(),
+            pos: 0,
+            number: 0,
+            declared: [0; 3],
+            error: None,
+        }
+    }
+
+    /// The refused line's error, if a line was refused.
+    fn check(&self, name: &str) -> Result<(), ConvertError> {
+        match &self.error {
+            Some(message) => Err(ConvertError::Input(format!("{name}: {message}"))),
+            None => Ok(()),
+        }
+    }
+
+    /// Checks one line; returns the reason it is refused.
+    fn refuse(&mut self, line: &[u8]) -> Option<String> {
+        // tobj refuses lines that are not UTF-8 itself.
+        let text = std::str::from_utf8(line).ok()?;
+        let mut words = text.split_whitespace();
+        match words.next()? {
+            "v" => self.declared[0] += 1,
+            "vt" => self.declared[1] += 1,
+            "vn" => self.declared[2] += 1,
+            "f" | "l" | "p" => {
+                const KINDS: [&str; 3] = ["vertex", "texture coordinate", "normal"];
+                for word in words {
+                    for (k, part) in word.split('/').take(3).enumerate() {
+                        // tobj refuses what is not an integer itself.
+                        let Ok(index) = part.parse::<i64>() else {
+                            continue;
+                        };
+                        let declared = self.declared[k];
+                        if index == 0 || index > MAX_OBJ_INDEX || index < -declared {
+                            return Some(format!(
+                                "line {}: {} index {index} is out of range ({declared} defined so far)",
+                                self.number, KINDS[k]
+                            ));
+                        }
+                    }
+                }
+            }
+            _ => {}
+        }
+        None
+    }
+}
+
+impl<R: std::io::BufRead> std::io::Read for IndexGuard<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        use std::io::BufRead;
+        let available = self.fill_buf()?;
+        let n = available.len().min(buf.len());
+        buf[..n].copy_from_slice(&available[..n]);
+        self.consume(n);
+        Ok(n)
+    }
+}
+
+impl<R: std::io::BufRead> std::io::BufRead for IndexGuard<R> {
+    fn fill_buf(&mut self) -> std::io::Result<&[u8]> {
+        if self.pos == self.line.len() && self.error.is_none() {
+            let mut line = std::mem::take(&mut self.line);
+            line.clear();
+            self.pos = 0;
+            if self.inner.read_until(b'\n', &mut line)? > 0 {
+                self.number += 1;
+                if let Some(message) = self.refuse(&line) {
+                    self.error = Some(message);
+                }
+            }
+            self.line = line;
+        }
+        if let Some(message) = &self.error {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                message.clone(),
+            ));
+        }
+        Ok(&self.line[self.pos..])
+    }
+
+    fn consume(&mut self, amount: usize) {
+        self.pos = (self.pos + amount).min(self.line.len());
     }
 }
 

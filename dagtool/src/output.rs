@@ -6,9 +6,13 @@
 //! temporary file is removed. Without `force` an existing file is never
 //! replaced (the rename itself refuses, so a file that appears meanwhile is
 //! safe too).
+//!
+//! Standard output goes through [`print_stdout`] and [`StdoutReport`]: a
+//! reader that closes the pipe early (`dagtool info FILE | head -1`) ends the
+//! output quietly instead of panicking in `println!`.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{self, BufWriter, ErrorKind, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::ConvertError;
@@ -65,15 +69,19 @@ pub fn write_atomic(
         .expect("checked")
         .to_string_lossy()
         .into_owned();
-    let mut tmp = tempfile::Builder::new()
-        .prefix(&format!("{name}.tmp"))
-        .tempfile_in(&dir)
-        .map_err(|e| {
-            ConvertError::io(
-                format!("cannot create a temporary file in {}", dir.display()),
-                e,
-            )
-        })?;
+    let prefix = format!("{name}.tmp");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix);
+    // tempfile creates files readable by their owner only; the output gets the
+    // ordinary permissions of a new file (0666 less the umask), like `cp`.
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let mut tmp = builder.tempfile_in(&dir).map_err(|e| {
+        ConvertError::io(
+            format!("cannot create a temporary file in {}", dir.display()),
+            e,
+        )
+    })?;
     {
         let mut w = BufWriter::with_capacity(1 << 20, tmp.as_file_mut());
         write(&mut w)
@@ -112,4 +120,67 @@ pub fn write_atomic(
         let _ = d.sync_all();
     }
     Ok(len)
+}
+
+/// Writes `text` to standard output and flushes it. A closed pipe (the reader
+/// has seen enough) is not an error: the rest of the output is dropped.
+/// Any other write error is.
+pub fn print_stdout(text: &str) -> Result<(), ConvertError> {
+    let mut out = StdoutReport::new();
+    out.write_all(text.as_bytes())
+        .and_then(|()| out.flush())
+        .map_err(|e| ConvertError::io("cannot write to standard output", e))
+}
+
+/// Standard output for a long report: after a write fails with a broken pipe
+/// every further write is dropped silently, so the command finishes its work
+/// (and its exit status still says what it found) once nobody is reading.
+#[derive(Debug)]
+pub struct StdoutReport {
+    out: io::StdoutLock<'static>,
+    closed: bool,
+}
+
+impl StdoutReport {
+    /// Locks standard output.
+    pub fn new() -> Self {
+        StdoutReport {
+            out: io::stdout().lock(),
+            closed: false,
+        }
+    }
+
+    fn quiet(&mut self, result: io::Result<()>) -> io::Result<()> {
+        match result {
+            Err(e) if e.kind() == ErrorKind::BrokenPipe => {
+                self.closed = true;
+                Ok(())
+            }
+            other => other,
+        }
+    }
+}
+
+impl Default for StdoutReport {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Write for StdoutReport {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        if self.closed {
+            return Ok(buf.len());
+        }
+        let result = self.out.write_all(buf);
+        self.quiet(result).map(|()| buf.len())
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        if self.closed {
+            return Ok(());
+        }
+        let result = self.out.flush();
+        self.quiet(result)
+    }
 }

@@ -213,6 +213,44 @@ impl ColumnParity {
     }
 }
 
+/// `NIBBLE_MASKS[w][j * 4 + i][n]`: the leaf mask bits of the voxels of a 4^3
+/// brick in the column at `(u, v) = (i, j)` (with `u = w + 1`, `v = w + 2`
+/// mod 3) whose positions along `w` are the set bits of the nibble `n`.
+static NIBBLE_MASKS: [[[u64; 16]; 16]; 3] = {
+    let mut t = [[[0u64; 16]; 16]; 3];
+    let mut w = 0;
+    while w < 3 {
+        let u = (w + 1) % 3;
+        let v = (w + 2) % 3;
+        let mut g = 0;
+        while g < 16 {
+            let mut n = 0;
+            while n < 16 {
+                let mut mask = 0u64;
+                let mut k = 0;
+                while k < 4 {
+                    if n >> k & 1 != 0 {
+                        let mut c = [0u32; 3];
+                        c[u] = (g % 4) as u32;
+                        c[v] = (g / 4) as u32;
+                        c[w] = k as u32;
+                        let hi =
+                            ((c[0] >> 1) & 1) | (((c[1] >> 1) & 1) << 1) | (((c[2] >> 1) & 1) << 2);
+                        let lo = (c[0] & 1) | ((c[1] & 1) << 1) | ((c[2] & 1) << 2);
+                        mask |= 1u64 << (hi * 8 + lo);
+                    }
+                    k += 1;
+                }
+                t[w][g][n] = mask;
+                n += 1;
+            }
+            g += 1;
+        }
+        w += 1;
+    }
+    t
+};
+
 /// Sets the inside voxels of a chunk in `buf`: with one axis, those of odd
 /// parity; with three, those of odd parity along at least two axes.
 /// `crossings[i]` and `incoming[i]` belong to the same axis; `None` crossings
@@ -232,11 +270,14 @@ pub fn fill_inside(
     for (i, &w) in axes.iter().enumerate() {
         let u = (w + 1) % 3;
         let v = (w + 2) % 3;
-        let mut vol = vec![0u64; nbricks];
+        // Inside bits of every column first, then whole bricks at once: the
+        // 4-bit slice of each of a brick's 16 columns maps to its mask
+        // through a table (no per-voxel work).
+        let mut inside = vec![0u128; cols];
         let mut any = false;
-        for col in 0..cols {
+        for (col, slot) in inside.iter_mut().enumerate() {
             let inc = incoming[i].is_some_and(|b| b[col >> 6] >> (col & 63) & 1 != 0);
-            let bitsx = match crossings[i] {
+            *slot = match crossings[i] {
                 Some(c) => c.inside(col, inc),
                 None if inc => {
                     if side < 128 {
@@ -247,29 +288,44 @@ pub fn fill_inside(
                 }
                 None => 0,
             };
-            if bitsx == 0 {
-                continue;
-            }
-            any = true;
-            let cu = (col % side) as u32;
-            let cv = (col / side) as u32;
-            let mut rest = bitsx;
-            while rest != 0 {
-                let k = rest.trailing_zeros();
-                rest &= rest - 1;
-                let mut c = [0u32; 3];
-                c[u] = cu;
-                c[v] = cv;
-                c[w] = k;
-                let m = local_morton(c[0], c[1], c[2]);
-                vol[(m >> 6) as usize] |= 1 << (m & 63);
-            }
+            any |= *slot != 0;
         }
+        let mut vol = Vec::new();
         if any {
-            votes.push(vol);
-        } else {
-            votes.push(Vec::new());
+            vol = vec![0u64; nbricks];
+            let table = &NIBBLE_MASKS[w];
+            let quarter = side / 4;
+            for bv in 0..quarter {
+                for bu in 0..quarter {
+                    let mut group = [0u128; 16];
+                    let mut nonzero = false;
+                    for j in 0..4 {
+                        for i2 in 0..4 {
+                            let col = (4 * bu + i2) + side * (4 * bv + j);
+                            group[j * 4 + i2] = inside[col];
+                            nonzero |= inside[col] != 0;
+                        }
+                    }
+                    if !nonzero {
+                        continue;
+                    }
+                    for bw in 0..quarter {
+                        let mut mask = 0u64;
+                        for (g, &column) in group.iter().enumerate() {
+                            mask |= table[g][((column >> (4 * bw)) & 15) as usize];
+                        }
+                        if mask != 0 {
+                            let mut c = [0u32; 3];
+                            c[u] = 4 * bu as u32;
+                            c[v] = 4 * bv as u32;
+                            c[w] = 4 * bw as u32;
+                            vol[(local_morton(c[0], c[1], c[2]) >> 6) as usize] = mask;
+                        }
+                    }
+                }
+            }
         }
+        votes.push(vol);
     }
     let get = |v: &Vec<u64>, i: usize| if v.is_empty() { 0 } else { v[i] };
     for brick in 0..nbricks {
@@ -285,6 +341,30 @@ pub fn fill_inside(
         };
         if mask != 0 {
             buf.or_brick(brick, mask, NO_TAG);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nibble_masks_follow_leaf_bits() {
+        for w in 0..3 {
+            let u = (w + 1) % 3;
+            let v = (w + 2) % 3;
+            for g in 0..16u32 {
+                for k in 0..4u32 {
+                    let mut c = [0u32; 3];
+                    c[u] = g % 4;
+                    c[v] = g / 4;
+                    c[w] = k;
+                    let bit = dagfmt::layout::leaf_bit(c[0], c[1], c[2]);
+                    assert_eq!(NIBBLE_MASKS[w][g as usize][1 << k], 1u64 << bit);
+                }
+                assert_eq!(NIBBLE_MASKS[w][g as usize][15].count_ones(), 4);
+            }
         }
     }
 }

@@ -81,11 +81,33 @@ pub fn read(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertError> {
     }
 }
 
+/// Reads a voxel list held in memory, binary (by its magic) or text; `name`
+/// names it in messages. Like [`read`], without touching the file system.
+pub fn read_bytes(bytes: &[u8], name: &str, depth: Option<u8>) -> Result<VoxelList, ConvertError> {
+    if bytes.starts_with(&BINARY_MAGIC) {
+        read_binary_from(bytes, bytes.len() as u64, name, depth)
+    } else {
+        read_text_from(bytes, name, depth)
+    }
+}
+
 /// Reads a text voxel list.
 pub fn read_text(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertError> {
     let file = File::open(path)
         .map_err(|e| ConvertError::io(format!("cannot open {}", path.display()), e))?;
-    let mut reader = BufReader::with_capacity(1 << 20, file);
+    let reader = BufReader::with_capacity(1 << 20, file);
+    read_text_from(reader, &path.display().to_string(), depth)
+}
+
+/// Reads a text voxel list from `reader`; `name` names it in messages.
+///
+/// Memory: one line at a time plus 8 bytes per voxel line (each at least 6
+/// bytes long), so at most a small multiple of the input.
+pub fn read_text_from(
+    mut reader: impl BufRead,
+    name: &str,
+    depth: Option<u8>,
+) -> Result<VoxelList, ConvertError> {
     let limit: u64 = 1u64 << depth.unwrap_or(MAX_DEPTH);
     let mut codes = Vec::new();
     let mut max = 0u32;
@@ -95,7 +117,7 @@ pub fn read_text(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertErr
         line.clear();
         let n = reader
             .read_line(&mut line)
-            .map_err(|e| ConvertError::io(format!("cannot read {}", path.display()), e))?;
+            .map_err(|e| ConvertError::io(format!("cannot read {name}"), e))?;
         if n == 0 {
             break;
         }
@@ -107,20 +129,17 @@ pub fn read_text(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertErr
         let parse = |s: Option<&str>| -> Result<u32, ConvertError> {
             let s = s.ok_or_else(|| {
                 ConvertError::Input(format!(
-                    "{}:{number}: expected three coordinates `x y z`",
-                    path.display()
+                    "{name}:{number}: expected three coordinates `x y z`"
                 ))
             })?;
             let v: u64 = s.parse().map_err(|_| {
                 ConvertError::Input(format!(
-                    "{}:{number}: `{s}` is not a non-negative integer",
-                    path.display()
+                    "{name}:{number}: `{s}` is not a non-negative integer"
                 ))
             })?;
             if v >= limit {
                 return Err(ConvertError::Input(format!(
-                    "{}:{number}: coordinate {v} is outside the volume (must be below {limit})",
-                    path.display()
+                    "{name}:{number}: coordinate {v} is outside the volume (must be below {limit})"
                 )));
             }
             Ok(v as u32)
@@ -130,8 +149,7 @@ pub fn read_text(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertErr
         c[2] = parse(fields.next())?;
         if let Some(extra) = fields.next() {
             return Err(ConvertError::Input(format!(
-                "{}:{number}: unexpected `{extra}` after three coordinates",
-                path.display()
+                "{name}:{number}: unexpected `{extra}` after three coordinates"
             )));
         }
         max = max.max(c[0]).max(c[1]).max(c[2]);
@@ -139,8 +157,7 @@ pub fn read_text(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertErr
     }
     if codes.is_empty() {
         return Err(ConvertError::Input(format!(
-            "{}: the voxel list holds no voxels",
-            path.display()
+            "{name}: the voxel list holds no voxels"
         )));
     }
     let records = codes.len() as u64;
@@ -159,27 +176,38 @@ pub fn read_binary(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertE
         .metadata()
         .map_err(|e| ConvertError::io(format!("cannot stat {}", path.display()), e))?
         .len();
-    let mut reader = BufReader::with_capacity(1 << 20, file);
+    let reader = BufReader::with_capacity(1 << 20, file);
+    read_binary_from(reader, len, &path.display().to_string(), depth)
+}
+
+/// Reads a binary voxel list of `len` bytes from `reader`; `name` names it in
+/// messages.
+///
+/// The count in the header is checked against `len` before anything is
+/// allocated from it, so memory is 8 bytes per 12-byte record.
+pub fn read_binary_from(
+    mut reader: impl Read,
+    len: u64,
+    name: &str,
+    depth: Option<u8>,
+) -> Result<VoxelList, ConvertError> {
     let mut header = [0u8; BINARY_HEADER_SIZE];
     reader.read_exact(&mut header).map_err(|_| {
         ConvertError::Input(format!(
-            "{}: shorter than the {BINARY_HEADER_SIZE}-byte voxel list header",
-            path.display()
+            "{name}: shorter than the {BINARY_HEADER_SIZE}-byte voxel list header"
         ))
     })?;
     let u32_at = |i: usize| u32::from_le_bytes(header[i..i + 4].try_into().expect("4 bytes"));
     let version = u32_at(4);
     if header[..4] != BINARY_MAGIC || version != BINARY_VERSION {
         return Err(ConvertError::Input(format!(
-            "{}: not a version-{BINARY_VERSION} binary voxel list (magic VVOX)",
-            path.display()
+            "{name}: not a version-{BINARY_VERSION} binary voxel list (magic VVOX)"
         )));
     }
     let file_depth = u32_at(8);
     if !(u32::from(MIN_DEPTH)..=u32::from(MAX_DEPTH)).contains(&file_depth) {
         return Err(ConvertError::Input(format!(
-            "{}: depth {file_depth} is outside {MIN_DEPTH}..={MAX_DEPTH}",
-            path.display()
+            "{name}: depth {file_depth} is outside {MIN_DEPTH}..={MAX_DEPTH}"
         )));
     }
     let file_depth = file_depth as u8;
@@ -187,8 +215,7 @@ pub fn read_binary(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertE
         && d != file_depth
     {
         return Err(ConvertError::Usage(format!(
-            "{} is a depth-{file_depth} voxel list but --depth {d} was given",
-            path.display()
+            "{name} is a depth-{file_depth} voxel list but --depth {d} was given"
         )));
     }
     let count = u64::from_le_bytes(header[12..20].try_into().expect("8 bytes"));
@@ -197,18 +224,16 @@ pub fn read_binary(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertE
         .and_then(|b| b.checked_add(BINARY_HEADER_SIZE as u64));
     if expected != Some(len) {
         return Err(ConvertError::Input(format!(
-            "{}: header declares {count} voxels but the file has {len} bytes (expected 20 + 12 x count)",
-            path.display()
+            "{name}: header declares {count} voxels but the file has {len} bytes (expected 20 + 12 x count)"
         )));
     }
     if count == 0 {
         return Err(ConvertError::Input(format!(
-            "{}: the voxel list holds no voxels",
-            path.display()
+            "{name}: the voxel list holds no voxels"
         )));
     }
     let limit = 1u64 << file_depth;
-    let mut codes = Vec::with_capacity(count as usize);
+    let mut codes = Vec::with_capacity(usize::try_from(count).unwrap_or(0));
     let mut record = [0u8; 12 * 4096];
     let mut left = count;
     let mut index = 0u64;
@@ -216,13 +241,12 @@ pub fn read_binary(path: &Path, depth: Option<u8>) -> Result<VoxelList, ConvertE
         let n = left.min(4096) as usize;
         reader
             .read_exact(&mut record[..12 * n])
-            .map_err(|e| ConvertError::io(format!("cannot read {}", path.display()), e))?;
+            .map_err(|e| ConvertError::io(format!("cannot read {name}"), e))?;
         for r in record[..12 * n].chunks_exact(12) {
             let c = [0, 4, 8].map(|i| u32::from_le_bytes(r[i..i + 4].try_into().expect("4 bytes")));
             if c.iter().any(|&v| u64::from(v) >= limit) {
                 return Err(ConvertError::Input(format!(
-                    "{}: voxel {index} {c:?} is outside the {limit}^3 volume",
-                    path.display()
+                    "{name}: voxel {index} {c:?} is outside the {limit}^3 volume"
                 )));
             }
             codes.push(dagfmt::morton::encode(c[0], c[1], c[2]));

@@ -214,7 +214,7 @@ mod bench {
         if args.random > 0 {
             let rays = random_rays(&dag, args.random);
             println!(
-                "random rays, {} rays, median of {} runs (GPU: traversal / whole call incl. host set-up and read-back):",
+                "random rays, {} rays, median of {} runs (GPU: dispatches incl. ray upload and hit read-back / whole call incl. host set-up and f64 answers):",
                 rays.len(),
                 args.runs
             );

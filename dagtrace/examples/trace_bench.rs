@@ -1,17 +1,29 @@
 //! Rays per second of the dagtrace CPU tracer, on one core and on all cores,
 //! for 1920x1080 primary camera rays and for random rays through the cube; and,
 //! with `--mesh`, obvhs's CWBVH closest-hit on the original triangle mesh with
-//! the very same world-space rays.
+//! the very same world-space rays, in the same run.
 //!
 //! ```text
-//! cargo run --release -p dagtrace --example trace_bench -- dragon12.vdag --mesh ../shared/meshes/dragon.obj
+//! cargo run --release -p dagtrace --example trace_bench -- \
+//!     dragon10.vdag dragon12.vdag dragon14.vdag --mesh ../shared/meshes/dragon.obj
 //! ```
 //!
-//! Every figure is the median of `--runs` runs. The voxel tracer runs without
-//! the attribute index (closest hit: t, cell, face), like obvhs's closest hit
-//! (t, triangle); `--index` adds the index.
+//! Measured per file and ray set, `--runs` times each, the runs of the
+//! different tracers alternating so that a busy machine slows them alike:
+//! - `trace()`: [`Tracer::trace`] called ray by ray on one thread;
+//! - `1 core`: [`Tracer::trace_sequential_into`] on one thread (several rays in
+//!   flight, switching between them at every read of the DAG);
+//! - `all cores`: [`Tracer::trace_batch_into`] (rayon, all threads);
+//! - obvhs: `CwBvh::ray_traverse` ray by ray on one thread, and over rayon
+//!   chunks of 1024 rays on all threads.
+//!
+//! Every figure is the median over the runs: wall-clock rays/s, the rays/s
+//! in the thread's CPU time (one-thread figures; it leaves out time the thread
+//! spent descheduled), and the median of the per-run ratios dagtrace / obvhs.
+//! The voxel tracer runs without the attribute index (closest hit: t, cell,
+//! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Parser;
@@ -30,8 +42,9 @@ use rayon::prelude::*;
 #[derive(Parser, Debug)]
 #[command(about = "Rays/s of the dagtrace CPU tracer (and obvhs CWBVH on the mesh)")]
 struct Args {
-    /// The .vdag file.
-    vdag: PathBuf,
+    /// The .vdag files (e.g. one mesh converted at several depths).
+    #[arg(required = true)]
+    vdags: Vec<PathBuf>,
     /// The mesh the .vdag was converted from (OBJ): also time obvhs on it.
     #[arg(long)]
     mesh: Option<PathBuf>,
@@ -47,6 +60,9 @@ struct Args {
     /// Camera image height.
     #[arg(long, default_value_t = 1080)]
     height: u32,
+    /// Only the ray sets whose name starts with this (`camera`, `random`).
+    #[arg(long)]
+    only: Option<String>,
     /// Also compute the attribute index of every hit.
     #[arg(long)]
     index: bool,
@@ -59,8 +75,8 @@ fn main() {
     }
 }
 
-fn median(mut v: Vec<Duration>) -> Duration {
-    v.sort();
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
     v[v.len() / 2]
 }
 
@@ -74,40 +90,49 @@ fn thread_cpu_time() -> Option<Duration> {
     ))
 }
 
-/// Median wall-clock time of `runs` calls of `f`.
-fn time(runs: usize, mut f: impl FnMut()) -> Duration {
-    f(); // warm the caches and the page cache of the map
-    median(
-        (0..runs.max(1))
-            .map(|_| {
-                let start = Instant::now();
-                f();
-                start.elapsed()
-            })
-            .collect(),
-    )
-}
-
-/// Median wall-clock and median thread CPU time of `runs` calls of `f` (the
-/// CPU time is the wall-clock time where it cannot be read).
-fn time_one_core(runs: usize, mut f: impl FnMut()) -> (Duration, Duration) {
+/// Rays/s of one call of `f` tracing `rays` rays: wall-clock and calling
+/// thread's CPU time (the wall-clock rate where that cannot be read).
+fn measure(rays: usize, f: &mut dyn FnMut()) -> (f64, f64) {
+    let (wall, cpu) = (Instant::now(), thread_cpu_time());
     f();
-    let (mut walls, mut cpus) = (Vec::new(), Vec::new());
-    for _ in 0..runs.max(1) {
-        let (wall, cpu) = (Instant::now(), thread_cpu_time());
-        f();
-        let wall = wall.elapsed();
-        walls.push(wall);
-        cpus.push(match (cpu, thread_cpu_time()) {
-            (Some(a), Some(b)) => b.saturating_sub(a),
-            _ => wall,
-        });
-    }
-    (median(walls), median(cpus))
+    let wall = wall.elapsed();
+    let cpu = match (cpu, thread_cpu_time()) {
+        (Some(a), Some(b)) => b.saturating_sub(a),
+        _ => wall,
+    };
+    let per_s = |d: Duration| rays as f64 / d.as_secs_f64().max(1e-9);
+    (per_s(wall), per_s(cpu))
 }
 
-fn rate(rays: usize, d: Duration) -> String {
-    format!("{:8.2} Mrays/s", rays as f64 / d.as_secs_f64() / 1e6)
+/// The rays/s of every tracer in `tracers` over `runs` alternating runs
+/// (after one warm-up call each): per tracer, the wall-clock and CPU-time
+/// rates of each run.
+fn alternate(
+    runs: usize,
+    rays: usize,
+    tracers: &mut [&mut dyn FnMut()],
+) -> Vec<(Vec<f64>, Vec<f64>)> {
+    for f in tracers.iter_mut() {
+        f();
+    }
+    let mut rates = vec![(Vec::new(), Vec::new()); tracers.len()];
+    for _ in 0..runs.max(1) {
+        for (f, (walls, cpus)) in tracers.iter_mut().zip(&mut rates) {
+            let (wall, cpu) = measure(rays, *f);
+            walls.push(wall);
+            cpus.push(cpu);
+        }
+    }
+    rates
+}
+
+/// Median of the per-run ratios `a[i] / b[i]`.
+fn ratio(a: &[f64], b: &[f64]) -> f64 {
+    median(a.iter().zip(b).map(|(a, b)| a / b).collect())
+}
+
+fn mrays(v: f64) -> String {
+    format!("{:7.2}", v / 1e6)
 }
 
 /// splitmix64.
@@ -212,18 +237,9 @@ impl Mesh {
 }
 
 fn run(args: Args) -> Result<(), String> {
-    let file = MappedFile::open(&args.vdag).map_err(|e| format!("{}: {e}", args.vdag.display()))?;
-    let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", args.vdag.display()))?;
-    let tracer = Tracer::new(&dag)
-        .map_err(|e| e.to_string())?
-        .with_index(args.index);
-    let header = dag.header();
+    let mesh = args.mesh.as_ref().map(Mesh::load).transpose()?;
     println!(
-        "{}: depth {}, {} voxels, {} bytes; {} threads; median of {} runs{}",
-        args.vdag.display(),
-        header.depth,
-        header.voxel_count,
-        header.file_size,
+        "{} threads; median of {} runs; Mrays/s (wall-clock / thread CPU time); x = dagtrace / obvhs (median of per-run ratios){}",
         rayon::current_num_threads(),
         args.runs,
         if args.index {
@@ -231,6 +247,26 @@ fn run(args: Args) -> Result<(), String> {
         } else {
             ""
         }
+    );
+    for path in &args.vdags {
+        bench_file(&args, path, mesh.as_ref())?;
+    }
+    Ok(())
+}
+
+fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), String> {
+    let file = MappedFile::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
+    let tracer = Tracer::new(&dag)
+        .map_err(|e| e.to_string())?
+        .with_index(args.index);
+    let header = dag.header();
+    println!(
+        "{}: depth {}, {} voxels, {} bytes",
+        path.display(),
+        header.depth,
+        header.voxel_count,
+        header.file_size,
     );
     let camera = Camera::automatic(&dag, f64::from(args.width) / f64::from(args.height))
         .frame()
@@ -245,68 +281,113 @@ fn run(args: Args) -> Result<(), String> {
             random_rays(header.root_min, header.root_size, args.random),
         ),
     ];
-    let mesh = args.mesh.as_ref().map(Mesh::load).transpose()?;
     for (name, rays) in &sets {
-        let mut hits = vec![Hit::MISS; rays.len()];
-        let (one, one_cpu) = time_one_core(args.runs, || {
-            for (ray, hit) in rays.iter().zip(hits.iter_mut()) {
-                *hit = tracer.trace(ray).expect("trace");
+        if args
+            .only
+            .as_ref()
+            .is_some_and(|only| !name.starts_with(only.as_str()))
+        {
+            continue;
+        }
+        let n = rays.len();
+        let mut hits = vec![Hit::MISS; n];
+        let mut single_hits = vec![Hit::MISS; n];
+        let mut ts = vec![0f32; n];
+        let mut mesh_ts = vec![0f32; n];
+        let mut failed = None;
+        // One thread.
+        let mut single = || {
+            for (ray, hit) in rays.iter().zip(single_hits.iter_mut()) {
+                match tracer.trace(ray) {
+                    Ok(h) => *hit = h,
+                    Err(e) => failed = Some(e),
+                }
             }
-        });
-        let all = time(args.runs, || {
-            tracer.trace_batch_into(rays, &mut hits).expect("trace");
-        });
-        let hit_count = hits.iter().filter(|h| h.hit).count();
-        println!(
-            "{name:>22}  dagtrace  1 core {} (cpu time {})   all cores {}   ({:.1}% hit)",
-            rate(rays.len(), one),
-            rate(rays.len(), one_cpu),
-            rate(rays.len(), all),
-            100.0 * hit_count as f64 / rays.len() as f64
-        );
-        if let Some(mesh) = &mesh {
-            let mut ts = vec![0f32; rays.len()];
-            let (mesh_one, mesh_one_cpu) = time_one_core(args.runs, || {
+        };
+        let mut sequential = || {
+            if let Err(e) = tracer.trace_sequential_into(rays, &mut hits) {
+                eprintln!("trace_bench: {e}");
+            }
+        };
+        let mut mesh_one = || {
+            if let Some(mesh) = mesh {
                 for (ray, t) in rays.iter().zip(ts.iter_mut()) {
                     *t = mesh.trace(ray);
                 }
-            });
-            let mesh_all = time(args.runs, || {
-                ts.par_chunks_mut(1024)
+            }
+        };
+        let one = alternate(
+            args.runs,
+            n,
+            &mut [&mut single, &mut sequential, &mut mesh_one],
+        );
+        // All threads.
+        let mut batch = || {
+            if let Err(e) = tracer.trace_batch_into(rays, &mut hits) {
+                eprintln!("trace_bench: {e}");
+            }
+        };
+        let mut mesh_all = || {
+            if let Some(mesh) = mesh {
+                mesh_ts
+                    .par_chunks_mut(1024)
                     .zip(rays.par_chunks(1024))
                     .for_each(|(ts, rays)| {
                         for (t, ray) in ts.iter_mut().zip(rays) {
                             *t = mesh.trace(ray);
                         }
                     });
-            });
-            let mesh_hits = ts.iter().filter(|t| t.is_finite()).count();
-            // Agreement: rays hitting both, and how far apart the hits are in voxels.
-            let voxel = header.root_size / (1u64 << header.depth) as f64;
-            let mut gaps: Vec<f64> = hits
-                .iter()
-                .zip(&ts)
-                .filter(|(h, t)| h.hit && t.is_finite())
-                .map(|(h, t)| (f64::from(*t) - f64::from(h.t)).abs() / voxel)
-                .collect();
-            gaps.sort_by(f64::total_cmp);
-            let both = gaps.len();
-            println!(
-                "{name:>22}  obvhs     1 core {} (cpu time {})   all cores {}   ({:.1}% hit)",
-                rate(rays.len(), mesh_one),
-                rate(rays.len(), mesh_one_cpu),
-                rate(rays.len(), mesh_all),
-                100.0 * mesh_hits as f64 / rays.len() as f64
-            );
-            println!(
-                "{name:>22}  speed-up  1 core {:6.2}x (cpu time {:6.2}x)          all cores {:6.2}x   (hit both: {both}; |t_mesh - t_voxel| median {:.2}, p99 {:.2} voxels)",
-                mesh_one.as_secs_f64() / one.as_secs_f64(),
-                mesh_one_cpu.as_secs_f64() / one_cpu.as_secs_f64(),
-                mesh_all.as_secs_f64() / all.as_secs_f64(),
-                gaps.get(both / 2).copied().unwrap_or(f64::NAN),
-                gaps.get(both * 99 / 100).copied().unwrap_or(f64::NAN),
-            );
+            }
+        };
+        let all = alternate(args.runs, n, &mut [&mut batch, &mut mesh_all]);
+        if let Some(e) = failed {
+            return Err(e.to_string());
         }
+        if hits != single_hits {
+            return Err("trace() and trace_sequential_into() answer differently".into());
+        }
+        let hit_count = hits.iter().filter(|h| h.hit).count();
+        let m = |v: &Vec<f64>| mrays(median(v.clone()));
+        println!(
+            "{name:>18}  dagtrace trace() 1 thread {} / {}   1 core {} / {}   all cores {}   ({:.1}% hit)",
+            m(&one[0].0),
+            m(&one[0].1),
+            m(&one[1].0),
+            m(&one[1].1),
+            m(&all[0].0),
+            100.0 * hit_count as f64 / n as f64
+        );
+        if mesh.is_none() {
+            continue;
+        }
+        let mesh_hits = ts.iter().filter(|t| t.is_finite()).count();
+        println!(
+            "{name:>18}  obvhs CWBVH                               1 core {} / {}   all cores {}   ({:.1}% hit)",
+            m(&one[2].0),
+            m(&one[2].1),
+            m(&all[1].0),
+            100.0 * mesh_hits as f64 / n as f64
+        );
+        // Agreement: rays hitting both, and how far apart the hits are in voxels.
+        let voxel = header.root_size / (1u64 << header.depth) as f64;
+        let mut gaps: Vec<f64> = hits
+            .iter()
+            .zip(&ts)
+            .filter(|(h, t)| h.hit && t.is_finite())
+            .map(|(h, t)| (f64::from(*t) - f64::from(h.t)).abs() / voxel)
+            .collect();
+        gaps.sort_by(f64::total_cmp);
+        let both = gaps.len();
+        println!(
+            "{name:>18}  speed-up x   trace() {:5.2}x / {:5.2}x          1 core {:5.2}x / {:5.2}x  all cores {:5.2}x   (hit both: {both}; |t_mesh - t_voxel| median {:.2}, p99 {:.2} voxels)",
+            ratio(&one[0].0, &one[2].0),
+            ratio(&one[0].1, &one[2].1),
+            ratio(&one[1].0, &one[2].0),
+            ratio(&one[1].1, &one[2].1),
+            ratio(&all[0].0, &all[1].0),
+            gaps.get(both / 2).copied().unwrap_or(f64::NAN),
+            gaps.get(both * 99 / 100).copied().unwrap_or(f64::NAN),
+        );
     }
     Ok(())
 }

@@ -15,13 +15,13 @@ use dagfmt::Dag;
 use dagfmt::mmap::MappedFile;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
-use dagtrace::render::{Shade, render};
+use dagtrace::render::{Shade, render, shade_hits};
 
 #[derive(Parser, Debug)]
 #[command(
     name = "dagtrace",
     version,
-    about = "Ray trace .vdag sparse voxel DAGs on the CPU"
+    about = "Ray trace .vdag sparse voxel DAGs on the CPU or the GPU"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -32,8 +32,31 @@ struct Cli {
 enum Command {
     /// Render a view of a .vdag (or .vdag.zst) file to a PNG image.
     Render(RenderArgs),
-    /// Trace a batch of rays (text or binary, see DESIGN.md) and write the hits.
+    /// Trace a batch of rays (text or binary, see spec/VDAG.md) and write the hits.
     Trace(TraceArgs),
+}
+
+/// Which tracer does the work.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum BackendArg {
+    /// The CPU reference tracer, on all cores.
+    Cpu,
+    /// The wgpu compute-shader tracer (an error when there is no adapter).
+    Gpu,
+    /// The GPU when an adapter exists (a software one included), else the CPU.
+    Auto,
+}
+
+#[derive(Args, Debug)]
+struct BackendArgs {
+    /// The tracer to use.
+    #[arg(long, value_enum, default_value_t = BackendArg::Cpu)]
+    backend: BackendArg,
+    /// GPU only: use a short traversal stack of this many entries (a power of
+    /// two, 1 to 16) that restarts from the root when it runs out, instead of
+    /// one entry per level. Answers are identical.
+    #[arg(long, value_name = "ENTRIES")]
+    short_stack: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -87,6 +110,8 @@ struct RenderArgs {
     #[arg(long)]
     level: Option<u8>,
     #[command(flatten)]
+    backend: BackendArgs,
+    #[command(flatten)]
     open: OpenArgs,
 }
 
@@ -111,6 +136,8 @@ struct TraceArgs {
     /// Format of the hit batch.
     #[arg(long, value_enum, default_value_t = HitFormat::Text)]
     format: HitFormat,
+    #[command(flatten)]
+    backend: BackendArgs,
     #[command(flatten)]
     open: OpenArgs,
 }
@@ -183,9 +210,24 @@ fn open_source(path: &Path, validate: bool) -> Result<Source, Failure> {
     Ok(source)
 }
 
-/// Refuses to replace `path` without `--force`.
+/// Refuses an output in a missing folder, an output that is a folder, and
+/// replacing `path` without `--force`; checked before any work is done.
 fn check_output(path: &Path, force: bool) -> Result<(), Failure> {
-    if !force && path.exists() {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if !dir.is_dir() {
+        return fail(format!(
+            "{}: the output folder {} does not exist",
+            path.display(),
+            dir.display()
+        ));
+    }
+    if path.is_dir() {
+        return fail(format!("{}: the output is a folder", path.display()));
+    }
+    if !force && path.symlink_metadata().is_ok() {
         return fail(format!(
             "{} already exists (use --force to replace it)",
             path.display()
@@ -205,16 +247,18 @@ fn write_atomically(
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    let temp = tempfile::Builder::new()
-        .prefix(".dagtrace-")
-        .suffix(".tmp")
-        .tempfile_in(dir)
-        .map_err(|e| {
-            Failure(format!(
-                "{}: cannot create a file there: {e}",
-                dir.display()
-            ))
-        })?;
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".dagtrace-").suffix(".tmp");
+    // tempfile creates files readable by their owner only; the output gets the
+    // ordinary permissions of a new file (0666 less the umask).
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+    let temp = builder.tempfile_in(dir).map_err(|e| {
+        Failure(format!(
+            "{}: cannot create a file there: {e}",
+            dir.display()
+        ))
+    })?;
     {
         let mut out = BufWriter::new(temp.as_file());
         write(&mut out)
@@ -237,6 +281,70 @@ fn write_atomically(
         }
     })?;
     Ok(())
+}
+
+/// A tracer that runs on some back end.
+#[cfg(feature = "gpu")]
+type GpuBackend = dagtrace::gpu::GpuTracer;
+
+/// Without the `gpu` feature there is no GPU back end.
+#[cfg(not(feature = "gpu"))]
+enum GpuBackend {}
+
+#[cfg(not(feature = "gpu"))]
+impl GpuBackend {
+    fn trace(&self, _: &[dagfmt::batch::Ray]) -> Result<Vec<dagfmt::batch::Hit>, Failure> {
+        match *self {}
+    }
+}
+
+/// The GPU tracer when the back end asks for one (and one can be made), or
+/// `None` for the CPU. Says on stderr which adapter traces, or why `auto`
+/// fell back to the CPU.
+fn pick_gpu(
+    dag: &Dag<'_>,
+    backend: &BackendArgs,
+    compute_index: bool,
+) -> Result<Option<GpuBackend>, Failure> {
+    if backend.backend == BackendArg::Cpu {
+        if backend.short_stack.is_some() {
+            return fail("--short-stack applies to the GPU tracer only (use --backend gpu)");
+        }
+        return Ok(None);
+    }
+    #[cfg(feature = "gpu")]
+    {
+        use dagtrace::gpu::{GpuOptions, GpuTracer, StackMode};
+        let options = GpuOptions {
+            stack: backend
+                .short_stack
+                .map_or(StackMode::Full, StackMode::Short),
+            compute_index,
+            ..GpuOptions::default()
+        };
+        match GpuTracer::new(dag, &options) {
+            Ok(gpu) => {
+                eprintln!(
+                    "dagtrace: tracing on the GPU: {}",
+                    gpu.context().adapter_name()
+                );
+                Ok(Some(gpu))
+            }
+            Err(e) if backend.backend == BackendArg::Auto => {
+                eprintln!("dagtrace: no GPU tracer ({e}); tracing on the CPU");
+                Ok(None)
+            }
+            Err(e) => fail(format!("--backend gpu: {e}")),
+        }
+    }
+    #[cfg(not(feature = "gpu"))]
+    {
+        let _ = (dag, compute_index);
+        if backend.backend == BackendArg::Auto {
+            return Ok(None);
+        }
+        fail("--backend gpu: this dagtrace was built without the `gpu` feature")
+    }
 }
 
 fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
@@ -272,8 +380,17 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
         ShadeArg::Depth => Shade::Depth,
         ShadeArg::Color => Shade::Color,
     };
-    let pixels = render(&tracer, &frame, args.width, args.height, shade, args.level)
-        .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let pixels = match pick_gpu(&dag, &args.backend, shade == Shade::Color)? {
+        None => render(&tracer, &frame, args.width, args.height, shade, args.level)
+            .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
+        Some(gpu) => {
+            // The same f64 camera rays as the CPU path, so both back ends
+            // render the same image (up to the spec's tolerance).
+            let rays = frame.rays(args.width, args.height, args.level);
+            let hits = gpu.trace(&rays)?;
+            shade_hits(&hits, shade, |i| tracer.color(i))
+        }
+    };
     write_atomically(&args.output, args.open.force, |out| {
         image::write_buffer_with_format(
             out,
@@ -308,10 +425,16 @@ fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {
             i + 1
         ));
     }
-    let tracer = Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
-    let hits = tracer
-        .trace_batch(&rays)
-        .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let hits = match pick_gpu(&dag, &args.backend, true)? {
+        None => {
+            let tracer =
+                Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+            tracer
+                .trace_batch(&rays)
+                .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?
+        }
+        Some(gpu) => gpu.trace(&rays)?,
+    };
     write_atomically(&args.out, args.open.force, |out| match args.format {
         HitFormat::Text => dagfmt::batch::write_hits_text(out, &hits),
         HitFormat::Binary => dagfmt::batch::write_hits_binary(out, &hits),
@@ -319,7 +442,30 @@ fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            if !e.use_stderr() {
+                // --help and --version.
+                let _ = e.print();
+                return ExitCode::SUCCESS;
+            }
+            // Usage errors are one line too, with status 2.
+            // clap's message, up to its usage and tips, as one line (the
+            // missing arguments are listed on the lines after the first).
+            let text = e.to_string();
+            let message: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("tip:"))
+                .filter(|l| !l.is_empty())
+                .collect();
+            let first = message.join(" ");
+            let first = first.strip_prefix("error: ").unwrap_or(&first);
+            eprintln!("dagtrace: error: {first} (see dagtrace --help)");
+            return ExitCode::from(2);
+        }
+    };
     let result = match cli.command {
         Command::Render(args) => render_cmd(args),
         Command::Trace(args) => trace_cmd(args),

@@ -24,12 +24,7 @@ impl Tracer<'_> {
     pub fn trace_batch_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
         rays.par_chunks(CHUNK)
             .zip(hits.par_chunks_mut(CHUNK))
-            .try_for_each(|(rays, hits)| {
-                for (ray, hit) in rays.iter().zip(hits) {
-                    *hit = self.trace(ray)?;
-                }
-                Ok(())
-            })
+            .try_for_each(|(rays, hits)| self.trace_sequential_into(rays, hits))
     }
 
     /// Any-hit queries for every ray on all cores: `true` where the ray is blocked.

@@ -19,7 +19,7 @@ pub enum Shade {
 /// Background colour of pixels whose ray hits nothing.
 pub const BACKGROUND: [u8; 3] = [24, 26, 32];
 
-/// Outward normal of an entry face (DESIGN.md numbering); face 0 (the ray
+/// Outward normal of an entry face (spec/VDAG.md numbering); face 0 (the ray
 /// starts inside) has none.
 pub fn face_normal(face: u8) -> Option<[f32; 3]> {
     Some(match face {
@@ -47,6 +47,14 @@ pub fn render(
     let colored = shade == Shade::Color && tracer.colors().is_some();
     let tracer = tracer.clone().with_index(colored);
     let hits = tracer.trace_batch(&rays)?;
+    Ok(shade_hits(&hits, shade, |i| tracer.color(i)))
+}
+
+/// Colours traced primary-ray hits (one per pixel, rows from the top) into
+/// RGB8 pixels. `color` looks up a voxel's stored colour by attribute index
+/// (used by [`Shade::Color`]); hits without an index get a neutral grey.
+/// Shared by the CPU and GPU back ends so both produce the same image.
+pub fn shade_hits(hits: &[Hit], shade: Shade, color: impl Fn(u64) -> Option<[u8; 4]>) -> Vec<u8> {
     let (near, far) = hits
         .iter()
         .filter(|h| h.hit && h.t.is_finite())
@@ -54,7 +62,7 @@ pub fn render(
             (n.min(h.t), f.max(h.t))
         });
     let mut pixels = Vec::with_capacity(hits.len() * 3);
-    for hit in &hits {
+    for hit in hits {
         let rgb = if !hit.hit {
             BACKGROUND
         } else {
@@ -72,7 +80,7 @@ pub fn render(
                 Shade::Color => {
                     let base = hit
                         .index
-                        .and_then(|i| tracer.color(i))
+                        .and_then(&color)
                         .map(|c| [c[0], c[1], c[2]].map(|v| f32::from(v) / 255.0))
                         .unwrap_or([0.75, 0.75, 0.72]);
                     lit(base, hit)
@@ -81,7 +89,7 @@ pub fn render(
         };
         pixels.extend_from_slice(&rgb);
     }
-    Ok(pixels)
+    pixels
 }
 
 /// Base colour from the face normal: each axis its own hue.

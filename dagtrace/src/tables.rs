@@ -154,9 +154,9 @@ mod tests {
 
     #[test]
     fn chain_of_a_ray_without_crossings_is_its_entry_child() {
-        for neg in 0..8 {
-            for c0 in 0..8 {
-                assert_eq!(CHAIN[neg][c0], 1 << (c0 ^ neg));
+        for (neg, table) in CHAIN.iter().enumerate() {
+            for (c0, &mask) in table.iter().enumerate().take(8) {
+                assert_eq!(mask, 1 << (c0 ^ neg));
             }
         }
     }
@@ -165,7 +165,7 @@ mod tests {
     fn chain_follows_crossing_order() {
         // Mirrored frame, neg = 0: enter child 0, cross z first, then x, then y.
         // order bits: t_x < t_y (1), t_x < t_z (0), t_y < t_z (0).
-        let key = 0 | 0b111 << 3 | 0b001 << 6;
+        let key = 0b111 << 3 | 0b001 << 6;
         let expected = 1 << 0 | 1 << 4 | 1 << 5 | 1 << 7;
         assert_eq!(CHAIN[0][key], expected);
         // Same ray mirrored in x: file children are mirrored indices ^ 1.
@@ -177,8 +177,8 @@ mod tests {
         assert_eq!(FIRST[0][0b1001_0110], 1);
         assert_eq!(FIRST[7][0b1000_0001], 7);
         assert_eq!(FIRST[1][0b0000_0011], 1);
-        for m in 0..256usize {
-            assert_eq!(POPCOUNT8[m] as u32, m.count_ones());
+        for (m, &count) in POPCOUNT8.iter().enumerate() {
+            assert_eq!(u32::from(count), m.count_ones());
         }
     }
 }

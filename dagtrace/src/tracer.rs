@@ -27,6 +27,15 @@
 //!    moves into (so a ray starting exactly on the face of a voxel and leaving
 //!    it does not hit it, and a `tmax` exactly at a cell's entry does). Both
 //!    answers are within the tolerance of the semantics.
+//!
+//!    The traversal is a resumable [`Walk`]: it stops before every read of a
+//!    node or leaf below the root, after prefetching it. [`Tracer::trace`] resumes at
+//!    once; [`Tracer::trace_sequential_into`] (and so [`Tracer::trace_batch`],
+//!    which runs it on every core) keeps [`LANES`] rays in flight and resumes
+//!    them in turn, so that the cache misses of one ray, which bound the
+//!    traversal of large DAGs, overlap with the work on the others. Every ray
+//!    runs through the very same steps either way, so the answers are
+//!    identical.
 //! 3. **Answer.** The first occupied cell found is reported with its entry
 //!    parameter and face, computed from the same plane parameters (the latest
 //!    slab entry of the moving axes, or `tmin` and face 0 when that is earlier),
@@ -68,6 +77,9 @@ const MAX_STORED_LEVELS: usize = 20;
 /// so that indexing with `level & LEVEL_INDEX` needs no bounds check.
 const LEVEL_SLOTS: usize = 32;
 const LEVEL_INDEX: usize = LEVEL_SLOTS - 1;
+
+/// Level of the cells whose bounding box rays are clipped to: 1/64 of the cube.
+const BOUNDS_LEVEL: u8 = 6;
 
 /// Direction given to axes whose direction is (treated as) zero, relative to a
 /// largest component in `[1, 2)`.
@@ -240,7 +252,7 @@ struct Frame {
 type Stack = [Frame; LEVEL_SLOTS];
 
 /// The ray in the traversal's f32 mirrored grid frame.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct Prepared {
     /// Origin (mirrored, re-based, grid units).
     origin: Vec3A,
@@ -257,6 +269,76 @@ struct Prepared {
     /// The traversal's parameter is `t' = (t - base) * scale`: `1 / scale`.
     inv_scale: f64,
     base: f64,
+}
+
+/// A first occupied cell as the traversal finds it: the mirrored grid
+/// position of its lower corner, its level and the leaf reached.
+type Cell = (Vec3A, u8, u32);
+
+/// The read a suspended [`Walk`] resumes with.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+enum Pending {
+    /// The header of node `target` of the walk's level (the node it stands on).
+    #[default]
+    Node,
+    /// The leaf mask `target` of the brick at `brick_pos`, a child of the
+    /// node the walk stands on.
+    Brick,
+}
+
+/// A traversal in progress that can be suspended before each read of the
+/// DAG, so that one thread can advance several rays in turn while their
+/// reads are under way (see [`Tracer::trace_sequential_into`]). The path of
+/// nodes lives in a separate [`Stack`].
+#[derive(Clone, Copy, Debug, Default)]
+struct Walk {
+    /// The ray, clipped to the occupied box.
+    q: Prepared,
+    /// The ray's own `tmin` (for the entry face of the answer).
+    ray_tmin: f32,
+    /// Level where the descent stops (see [`Tracer::start`]).
+    stop: u8,
+    /// Level of the node the walk stands on.
+    level: u8,
+    pending: Pending,
+    /// Mirrored grid position of that node's lower corner, and its edge.
+    pos: Vec3A,
+    size: f32,
+    /// The node word or leaf index to read next.
+    target: u32,
+    /// Mirrored grid position of the brick to read next.
+    brick_pos: Vec3A,
+}
+
+impl Walk {
+    /// The prepared ray with its own `tmin`, for [`Tracer::found`].
+    fn ray(&self) -> Prepared {
+        Prepared {
+            tmin: self.ray_tmin,
+            ..self.q
+        }
+    }
+}
+
+/// Rays in flight at once in [`Tracer::trace_sequential_into`]: enough to
+/// cover the latency of a read from memory with the work of the others.
+const LANES: usize = 8;
+
+/// One ray in flight in [`Tracer::trace_sequential_into`].
+#[derive(Clone, Copy, Debug, Default)]
+struct Lane {
+    walk: Walk,
+    stack: Stack,
+    /// Index of the ray in the batch.
+    ray: usize,
+}
+
+/// What [`Tracer::begin`] made of a ray.
+enum Begun {
+    /// Answered without a traversal.
+    Done(Hit),
+    /// To be traversed.
+    Walk(Walk),
 }
 
 /// What set-up decided about a ray.
@@ -302,6 +384,12 @@ pub struct Tracer<'a> {
     saturated: FxHashMap<(u8, u32), u64>,
     compute_index: bool,
     colors: Option<&'a [u8]>,
+    /// Level of the cells whose union `bounds` encloses.
+    bounds_level: u8,
+    /// Per direction octant: the box (grid units, mirrored frame) of the
+    /// occupied cells of `bounds_level`. Rays are clipped to it before the
+    /// traversal: most rays that miss the object never reach the root node.
+    bounds: [(Vec3A, Vec3A); 8],
 }
 
 impl<'a> Tracer<'a> {
@@ -344,7 +432,25 @@ impl<'a> Tracer<'a> {
             saturated: FxHashMap::default(),
             compute_index: true,
             colors: dag.colors(),
+            bounds_level: 0,
+            bounds: [(Vec3A::ZERO, Vec3A::splat((1u32 << depth) as f32)); 8],
         };
+        if !tracer.empty {
+            let level = BOUNDS_LEVEL.min(tracer.leaf_level);
+            if let Some((lo, hi)) = tracer.occupied_cells(level) {
+                let resolution = (1u32 << depth) as f32;
+                let cell = tracer.cell_size[usize::from(level)];
+                let lo = Vec3A::from_array(lo.map(|c| c as f32)) * cell;
+                let hi = Vec3A::from_array(hi.map(|c| c as f32)) * cell;
+                for (neg, slot) in tracer.bounds.iter_mut().enumerate() {
+                    let mirrored = BVec3A::new(neg & 1 != 0, neg & 2 != 0, neg & 4 != 0);
+                    let m_lo = Vec3A::select(mirrored, Vec3A::splat(resolution) - hi, lo);
+                    let m_hi = Vec3A::select(mirrored, Vec3A::splat(resolution) - lo, hi);
+                    *slot = (m_lo, m_hi);
+                }
+                tracer.bounds_level = level;
+            }
+        }
         if tracer.attribute_kind == AttributeKind::VoxelCount
             && !tracer.empty
             && tracer.leaf_level > 0
@@ -356,6 +462,39 @@ impl<'a> Tracer<'a> {
             tracer.saturated = saturated;
         }
         Ok(tracer)
+    }
+
+    /// The box (inclusive lower, exclusive upper cell coordinates) of the
+    /// occupied cells of `level`, by a walk of the tree down to that level (at
+    /// most 8^level nodes); `None` when a read fails (a damaged file).
+    fn occupied_cells(&self, level: u8) -> Option<([u32; 3], [u32; 3])> {
+        let mut lo = [u32::MAX; 3];
+        let mut hi = [0u32; 3];
+        let mut pending = vec![(0u8, 0u32, [0u32; 3])];
+        while let Some((l, word, cell)) = pending.pop() {
+            if l == level {
+                for i in 0..3 {
+                    lo[i] = lo[i].min(cell[i]);
+                    hi[i] = hi[i].max(cell[i] + 1);
+                }
+                continue;
+            }
+            let section = &self.levels[usize::from(l) & LEVEL_INDEX];
+            let mask = section.header(l, word).ok()? as u8;
+            let mut rank = 0;
+            for child in 0..8u32 {
+                if mask >> child & 1 == 1 {
+                    let pointer = section.pointer(l, word, rank).ok()?;
+                    rank += 1;
+                    pending.push((
+                        l + 1,
+                        pointer,
+                        [0, 1, 2].map(|i| cell[i] * 2 + (child >> i & 1)),
+                    ));
+                }
+            }
+        }
+        (lo[0] <= hi[0]).then_some((lo, hi))
     }
 
     /// Whether hits carry the attribute index (default true). Turning it off
@@ -392,32 +531,132 @@ impl<'a> Tracer<'a> {
     /// Traces one ray: the occupied cell with the smallest entry parameter.
     pub fn trace(&self, ray: &Ray) -> Result<Hit, TraceError> {
         let mut stack = [Frame::default(); LEVEL_SLOTS];
-        let (found, level, t, face) = match self.setup(ray)? {
-            Setup::Miss => return Ok(Hit::MISS),
+        let mut fault = None;
+        match self.begin(ray, &mut stack, &mut fault)? {
+            Begun::Done(hit) => Ok(hit),
+            Begun::Walk(mut walk) => {
+                let cell = loop {
+                    if let Some(cell) = self.resume(&mut walk, &mut stack, &mut fault) {
+                        break cell;
+                    }
+                };
+                self.finish(&walk.ray(), cell, &stack, fault)
+            }
+        }
+    }
+
+    /// Traces every ray on the calling thread: hit `i` answers ray `i` (when
+    /// the lengths differ only the common prefix is traced). The answers are
+    /// those of [`Tracer::trace`]; it is faster than calling it for each ray
+    /// because it keeps several rays in flight and switches between them at
+    /// every read of the DAG, so that the memory latency of one ray's reads is
+    /// spent advancing the others. Fails with the first error met.
+    pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
+        let count = rays.len().min(hits.len());
+        let mut lanes = [Lane::default(); LANES];
+        let mut active = 0;
+        let mut next = 0;
+        loop {
+            // Fill the free lanes with rays that need a traversal; the others
+            // are answered on the spot.
+            while active < LANES && next < count {
+                let lane = &mut lanes[active];
+                let mut fault = None;
+                match self.begin(&rays[next], &mut lane.stack, &mut fault)? {
+                    Begun::Done(hit) => hits[next] = hit,
+                    Begun::Walk(walk) => {
+                        lane.walk = walk;
+                        lane.ray = next;
+                        active += 1;
+                    }
+                }
+                next += 1;
+            }
+            if active == 0 {
+                return Ok(());
+            }
+            // One step of every lane, in turn; a finished lane is answered and
+            // replaced by the last one.
+            let mut k = 0;
+            while k < active {
+                let lane = &mut lanes[k];
+                let mut fault = None;
+                match self.resume(&mut lane.walk, &mut lane.stack, &mut fault) {
+                    None if fault.is_none() => k += 1,
+                    cell => {
+                        let cell = cell.flatten();
+                        hits[lane.ray] = self.finish(&lane.walk.ray(), cell, &lane.stack, fault)?;
+                        active -= 1;
+                        lanes.swap(k, active);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Set-up of a ray: its answer when that needs no traversal of the nodes,
+    /// or its walk from the root.
+    #[inline(always)]
+    fn begin(
+        &self,
+        ray: &Ray,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Result<Begun, TraceError> {
+        match self.setup(ray)? {
+            Setup::Miss => Ok(Begun::Done(Hit::MISS)),
             Setup::Point {
                 origin,
                 tmin,
                 level,
-            } => match self.point_cell(origin, level, &mut stack)? {
-                None => return Ok(Hit::MISS),
-                Some(found) => (found, level, tmin, 0),
+            } => match self.point_cell(origin, level, stack)? {
+                None => Ok(Begun::Done(Hit::MISS)),
+                Some(found) => {
+                    let index = self
+                        .index(&found, level, stack)
+                        .map_err(|f| self.fault_error(f))?;
+                    Ok(Begun::Done(Hit {
+                        hit: true,
+                        t: tmin,
+                        voxel: found.cell,
+                        level,
+                        face: 0,
+                        index,
+                    }))
+                }
             },
-            Setup::Trace(prepared) => match self
-                .traverse(&prepared, &mut stack)
-                .map_err(|f| self.fault_error(f))?
-            {
-                None => return Ok(Hit::MISS),
-                Some((found, t, face)) => (found, prepared.level, t, face),
+            Setup::Trace(prepared) => match self.start(&prepared, fault) {
+                Ok(walk) => Ok(Begun::Walk(walk)),
+                Err(cell) => self.finish(&prepared, cell, stack, *fault).map(Begun::Done),
             },
+        }
+    }
+
+    /// The hit for the first occupied cell found by the traversal of `p`
+    /// (whose path is in `stack`), or the fault met on the way.
+    #[inline(always)]
+    fn finish(
+        &self,
+        p: &Prepared,
+        cell: Option<Cell>,
+        stack: &Stack,
+        fault: Option<Fault>,
+    ) -> Result<Hit, TraceError> {
+        if let Some(f) = fault {
+            return Err(self.fault_error(f));
+        }
+        let Some((pos, level, leaf)) = cell else {
+            return Ok(Hit::MISS);
         };
+        let (found, t, face) = self.found(p, pos, level, leaf);
         let index = self
-            .index(&found, level, &stack)
+            .index(&found, p.level, stack)
             .map_err(|f| self.fault_error(f))?;
         Ok(Hit {
             hit: true,
             t,
             voxel: found.cell,
-            level,
+            level: p.level,
             face,
             index,
         })
@@ -497,8 +736,12 @@ impl<'a> Tracer<'a> {
                 });
             }
         };
-        // Also false for a NaN bound.
-        if !(ray.tmin <= ray.tmax) || self.empty {
+        // A NaN bound, or tmin > tmax: no segment.
+        let ordered = matches!(
+            ray.tmin.partial_cmp(&ray.tmax),
+            Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+        );
+        if !ordered || self.empty {
             return Ok(Setup::Miss);
         }
         let origin =
@@ -616,91 +859,163 @@ impl<'a> Tracer<'a> {
         stack: &mut Stack,
         fault: &mut Option<Fault>,
     ) -> Option<(Found, f32, u8)> {
+        let cell = match self.start(p, fault) {
+            Err(done) => done,
+            Ok(mut walk) => loop {
+                if let Some(done) = self.resume(&mut walk, stack, fault) {
+                    break done;
+                }
+            },
+        };
+        cell.map(|(pos, level, leaf)| self.found(p, pos, level, leaf))
+    }
+
+    /// Starts the traversal of `p`: clips it to the occupied box and answers
+    /// the rays that need no node read (`Err`: the first occupied cell as
+    /// [`Tracer::resume`] gives it), or returns the walk from the root.
+    #[inline(always)]
+    fn start(&self, p: &Prepared, fault: &mut Option<Fault>) -> Result<Walk, Option<Cell>> {
         let leaf_level = self.leaf_level;
-        let neg = p.neg;
         let (origin, inv_dir) = (p.origin, p.inv_dir);
-        // The root cube: is it met at all?
         let root_size = self.cell_size[0];
-        let root_lo = (Vec3A::ZERO - origin) * inv_dir;
-        let root_hi = (Vec3A::splat(root_size) - origin) * inv_dir;
-        if max(root_lo.max_element(), p.tmin) > min(root_hi.min_element(), p.tmax) {
-            return None;
+        // Clip the segment to the box of the occupied cells (to the cube for
+        // rays coarser than the box's cells): a ray that misses it misses
+        // everything. The clipped bounds drive the traversal; `p` keeps the
+        // ray's own `tmin` for the entry face of the answer.
+        let (lo, hi) = if p.level >= self.bounds_level {
+            self.bounds[p.neg & 7]
+        } else {
+            (Vec3A::ZERO, Vec3A::splat(root_size))
+        };
+        let enter = max(((lo - origin) * inv_dir).max_element(), p.tmin);
+        let exit = min(((hi - origin) * inv_dir).min_element(), p.tmax);
+        if enter > exit {
+            return Err(None);
         }
         if p.level == 0 {
-            return Some(self.found(p, Vec3A::ZERO, 0, 0));
+            return Err(Some((Vec3A::ZERO, 0, 0)));
         }
+        let q = Prepared {
+            tmin: enter,
+            tmax: exit,
+            ..*p
+        };
         if leaf_level == 0 {
-            return self
-                .brick(p, 0, Vec3A::ZERO, fault)
-                .map(|(cell, level)| self.found(p, cell, level, 0));
+            return Err(self
+                .brick(&q, 0, Vec3A::ZERO, fault)
+                .map(|(cell, level)| (cell, level, 0)));
         }
-        // The level where the descent stops: the ray's level, or the leaf
-        // level whose bricks are answered from their masks.
-        let stop = p.level.min(leaf_level);
-        let mut level = 0u8;
-        // Mirrored grid position of the current node's lower corner (exact
-        // integers in f32) and its edge length.
-        let mut pos = Vec3A::ZERO;
-        let mut size = root_size;
-        let mut word = 0u32;
-        'descend: loop {
-            let l = usize::from(level) & LEVEL_INDEX;
-            let header = self.levels[l].header_or_fault(level, word, fault);
-            let t_lo = (pos - origin) * inv_dir;
-            let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
-            let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
-            let t_enter = max(t_lo.max_element(), p.tmin);
-            let t_exit = min(t_hi.min_element(), p.tmax);
-            let mask = header as u8;
-            let remaining = if t_enter <= t_exit {
-                chain(neg, t_enter, t_exit, t_mid) & mask
-            } else {
-                0
-            };
-            stack[l] = Frame {
-                word,
-                mask,
-                remaining,
-                last: 0,
-                _pad: 0,
-            };
-            loop {
-                let frame = &mut stack[usize::from(level) & LEVEL_INDEX];
-                if frame.remaining == 0 {
-                    if level == 0 {
-                        return None;
-                    }
-                    // Back to the parent: undo the step into this node.
-                    level -= 1;
-                    let parent = stack[usize::from(level) & LEVEL_INDEX];
-                    pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
-                    size *= 2.0;
-                    continue;
-                }
-                let child = FIRST[neg][usize::from(frame.remaining)];
-                frame.remaining &= !(1 << child);
-                frame.last = child;
-                let rank = u32::from(POPCOUNT8[usize::from(frame.mask & ((1u8 << child) - 1))]);
-                let pointer = self.levels[usize::from(level) & LEVEL_INDEX]
-                    .pointer_or_fault(level, frame.word, rank, fault);
-                let half = size * 0.5;
-                let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
-                let child_level = level + 1;
-                if child_level == stop {
-                    if stop == p.level {
-                        return Some(self.found(p, child_pos, child_level, pointer));
-                    }
-                    if let Some((cell, cell_level)) = self.brick(p, pointer, child_pos, fault) {
-                        return Some(self.found(p, cell, cell_level, pointer));
-                    }
-                    continue;
-                }
-                level = child_level;
-                pos = child_pos;
-                size = half;
-                word = pointer;
-                continue 'descend;
+        Ok(Walk {
+            q,
+            ray_tmin: p.tmin,
+            // The level where the descent stops: the ray's level, or the leaf
+            // level whose bricks are answered from their masks.
+            stop: p.level.min(leaf_level),
+            level: 0,
+            pending: Pending::Node,
+            pos: Vec3A::ZERO,
+            size: root_size,
+            target: 0,
+            brick_pos: Vec3A::ZERO,
+        })
+    }
+
+    /// Runs `walk` up to its next read of a node or leaf that may miss the
+    /// cache: that read is prefetched and `None` returned, to be resumed
+    /// later. `Some` when the walk is over: the first occupied cell, or `None`
+    /// when there is none.
+    #[inline(always)]
+    fn resume(
+        &self,
+        walk: &mut Walk,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Option<Option<Cell>> {
+        let q = &walk.q;
+        let neg = q.neg;
+        let (origin, inv_dir) = (q.origin, q.inv_dir);
+        let stop = walk.stop;
+        let mut level = walk.level;
+        let mut pos = walk.pos;
+        let mut size = walk.size;
+        match walk.pending {
+            Pending::Node => {
+                let l = usize::from(level) & LEVEL_INDEX;
+                let word = walk.target;
+                let header = self.levels[l].header_or_fault(level, word, fault);
+                let t_lo = (pos - origin) * inv_dir;
+                let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
+                let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
+                let t_enter = max(t_lo.max_element(), q.tmin);
+                let t_exit = min(t_hi.min_element(), q.tmax);
+                let mask = header as u8;
+                let remaining = if t_enter <= t_exit {
+                    chain(neg, t_enter, t_exit, t_mid) & mask
+                } else {
+                    0
+                };
+                stack[l] = Frame {
+                    word,
+                    mask,
+                    remaining,
+                    last: 0,
+                    _pad: 0,
+                };
             }
+            Pending::Brick => {
+                let leaf = walk.target;
+                if let Some((cell, cell_level)) = self.brick(q, leaf, walk.brick_pos, fault) {
+                    return Some(Some((cell, cell_level, leaf)));
+                }
+            }
+        }
+        loop {
+            let frame = &mut stack[usize::from(level) & LEVEL_INDEX];
+            if frame.remaining == 0 {
+                if level == 0 {
+                    return Some(None);
+                }
+                // Back to the parent: undo the step into this node.
+                level -= 1;
+                let parent = stack[usize::from(level) & LEVEL_INDEX];
+                pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
+                size *= 2.0;
+                continue;
+            }
+            let child = FIRST[neg][usize::from(frame.remaining)];
+            frame.remaining &= !(1 << child);
+            frame.last = child;
+            let rank = u32::from(POPCOUNT8[usize::from(frame.mask & ((1u8 << child) - 1))]);
+            let pointer = self.levels[usize::from(level) & LEVEL_INDEX]
+                .pointer_or_fault(level, frame.word, rank, fault);
+            let half = size * 0.5;
+            let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
+            let child_level = level + 1;
+            if child_level == stop {
+                if stop == q.level {
+                    return Some(Some((child_pos, child_level, pointer)));
+                }
+                // The brick is read on resumption; the walk stays at its parent.
+                let leaf_level = usize::from(self.leaf_level) & LEVEL_INDEX;
+                prefetch(self.levels[leaf_level].bytes, pointer as usize * 8);
+                walk.pending = Pending::Brick;
+                walk.target = pointer;
+                walk.brick_pos = child_pos;
+                walk.level = level;
+                walk.pos = pos;
+                walk.size = size;
+                return None;
+            }
+            prefetch(
+                self.levels[usize::from(child_level) & LEVEL_INDEX].bytes,
+                pointer as usize * 4,
+            );
+            walk.pending = Pending::Node;
+            walk.target = pointer;
+            walk.level = child_level;
+            walk.pos = child_pos;
+            walk.size = half;
+            return None;
         }
     }
 
@@ -934,6 +1249,23 @@ fn chain(neg: usize, t_enter: f32, t_exit: f32, t_mid: Vec3A) -> u8 {
     CHAIN[neg][((first | crossing << 3 | order << 6) & 511) as usize]
 }
 
+/// Hints the processor to load the cache line holding `bytes[at]` (nothing
+/// when `at` is out of range).
+#[inline(always)]
+fn prefetch(bytes: &[u8], at: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if at < bytes.len() {
+        let address = bytes.as_ptr().wrapping_add(at);
+        // SAFETY: `prefetch` is only a hint: it reads nothing the program
+        // sees, never faults, and `sse` is part of the x86-64 baseline.
+        unsafe {
+            std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(address.cast())
+        };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (bytes, at);
+}
+
 /// Bit `c` set when byte `c` (sub-brick `c`) of a leaf mask is non-zero.
 #[inline(always)]
 fn sub_brick_mask(bits: u64) -> u8 {
@@ -995,6 +1327,133 @@ fn slab_entry(o: &[f64; 3], d: &[f64; 3], tmin: f64, tmax: f64, size: f64) -> Op
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dagfmt::builder::DagBuilder;
+
+    /// splitmix64.
+    struct Rng(u64);
+
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        }
+
+        fn range(&mut self, lo: f32, hi: f32) -> f32 {
+            lo + (hi - lo) * (self.next() >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// A DAG of depth 6 with random clusters of voxels, counts in the nodes.
+    fn scene(rng: &mut Rng) -> Vec<u8> {
+        let mut voxels = Vec::new();
+        for _ in 0..6 {
+            let center = [0; 3].map(|_| (rng.next() % 64) as i64);
+            for _ in 0..200 {
+                let v = center.map(|c| (c + (rng.next() % 9) as i64 - 4).clamp(0, 63) as u32);
+                voxels.push(v);
+            }
+        }
+        let built =
+            DagBuilder::from_voxels(6, AttributeKind::VoxelCount, voxels).expect("valid voxels");
+        built.to_bytes()
+    }
+
+    /// Rays from around the cube towards it, some with a level of detail,
+    /// some with a zero direction or a bounded segment.
+    fn rays(rng: &mut Rng, count: usize) -> Vec<Ray> {
+        (0..count)
+            .map(|i| {
+                let origin = [0; 3].map(|_| rng.range(-0.5, 1.5));
+                let target = [0; 3].map(|_| rng.range(0.0, 1.0));
+                let dir = if i % 97 == 0 {
+                    [0.0; 3]
+                } else {
+                    [0, 1, 2].map(|a| target[a] - origin[a])
+                };
+                Ray {
+                    origin,
+                    dir,
+                    tmin: if i % 5 == 0 { rng.range(0.0, 0.5) } else { 0.0 },
+                    tmax: if i % 7 == 0 {
+                        rng.range(0.2, 1.5)
+                    } else {
+                        f32::INFINITY
+                    },
+                    level: (i % 11 == 0).then(|| (rng.next() % 7) as u8),
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn interleaved_batches_answer_like_single_rays() {
+        let mut rng = Rng(7);
+        for _ in 0..8 {
+            let bytes = scene(&mut rng);
+            let dag = Dag::open(&bytes).expect("built DAG opens");
+            let tracer = Tracer::new(&dag).expect("tracer");
+            let rays = rays(&mut rng, 3000);
+            let mut hits = vec![Hit::MISS; rays.len()];
+            tracer
+                .trace_sequential_into(&rays, &mut hits)
+                .expect("valid DAG traces");
+            let mut hit_count = 0;
+            for (ray, hit) in rays.iter().zip(&hits) {
+                assert_eq!(tracer.trace(ray).expect("traces"), *hit, "{ray:?}");
+                hit_count += usize::from(hit.hit);
+            }
+            assert!(hit_count > rays.len() / 10, "{hit_count} hits");
+        }
+    }
+
+    #[test]
+    fn interleaved_batches_report_malformed_dags_like_single_rays() {
+        let mut rng = Rng(11);
+        let bytes = scene(&mut rng);
+        let first = Dag::open(&bytes).expect("built DAG opens").levels()[0].file_offset as usize;
+        let mut errors = 0;
+        for case in 0..200 {
+            let mut corrupt = bytes.clone();
+            for _ in 0..1 + case % 4 {
+                let at = first + (rng.next() % (corrupt.len() - first) as u64) as usize;
+                corrupt[at] = rng.next() as u8;
+            }
+            let Ok(dag) = Dag::open(&corrupt) else {
+                continue;
+            };
+            let Ok(tracer) = Tracer::new(&dag) else {
+                continue;
+            };
+            let rays = rays(&mut rng, 40);
+            // Ray by ray: the same answer or the same error.
+            for ray in &rays {
+                let mut hit = [Hit::MISS];
+                let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
+                match (tracer.trace(ray), batch) {
+                    (Ok(single), Ok(())) => assert_eq!(single, hit[0]),
+                    (Err(a), Err(b)) => {
+                        assert_eq!(a, b);
+                        errors += 1;
+                    }
+                    (a, b) => panic!("single {a:?}, batch {b:?}"),
+                }
+            }
+            // A whole batch fails exactly when one of its rays does.
+            let mut hits = vec![Hit::MISS; rays.len()];
+            let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
+            assert_eq!(
+                tracer.trace_sequential_into(&rays, &mut hits).is_err(),
+                any_error
+            );
+        }
+        assert!(
+            errors > 0,
+            "some corruption must lead a pointer out of range"
+        );
+    }
 
     #[test]
     fn sub_brick_mask_gathers_non_zero_bytes() {

@@ -1,7 +1,7 @@
 //! Builder → bytes → reader round trips (property tests), and the transport,
 //! batch and statistics modules.
 //!
-//! The container is checked by an oracle written here from DESIGN.md (not by
+//! The container is checked by an oracle written here from spec/VDAG.md (not by
 //! the crate's validator): checksums, placement and padding, minimal pointer
 //! widths, pointer targets, references, stored voxel counts, and that no level
 //! holds two identical records (deduplication). Voxel sets are compared with

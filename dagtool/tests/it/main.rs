@@ -8,11 +8,15 @@
 mod common;
 mod reference;
 
+mod bad_input;
 mod chunking;
 mod cli_errors;
 mod colors;
 mod commands;
+mod fuzz_smoke;
+mod mapped_files;
 mod meshes;
 mod solid;
 mod surface;
+mod verify;
 mod voxel_lists;

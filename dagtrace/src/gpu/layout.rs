@@ -45,7 +45,7 @@ pub const OPTION_WRITE_IMAGE: u32 = 4;
 pub const FACE_INSIDE: u32 = 0;
 
 /// Inverse direction given to axes whose direction is (treated as) zero: the
-/// CPU tracer's `1 / 2^-60`, so both traversals compute the same numbers.
+/// CPU tracer's `1 / 2^-60`, so both traversals treat such axes alike.
 pub const TINY_DIRECTION_INVERSE: f32 = (1u64 << 60) as f32;
 /// Far end of camera rays, in grid units along a unit direction.
 pub const RENDER_FAR: f32 = 1.0e30;
@@ -239,7 +239,7 @@ gpu_struct! {
 const _: () = assert!(size_of::<GpuRay>() == 48);
 const _: () = assert!(size_of::<GpuHit>() == 32);
 const _: () = assert!(size_of::<GpuParams>() == 48 + 64 + 16 * MAX_STORED_LEVELS);
-const _: () = assert!(size_of::<GpuParams>() % 16 == 0);
+const _: () = assert!(size_of::<GpuParams>().is_multiple_of(16));
 
 /// How the shader is specialised: fixed per pipeline.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

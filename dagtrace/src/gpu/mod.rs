@@ -3,9 +3,9 @@
 //! [`GpuTracer::new`] uploads the DAG's level sections straight from the
 //! (memory-mapped) file bytes into GPU storage buffers, in bounded chunks;
 //! [`GpuTracer::trace`] traces a batch of [`dagfmt::batch::Ray`]s with the
-//! semantics of spec/VDAG.md and returns the same answers as
-//! [`crate::Tracer`]; [`GpuTracer::render`] makes and traces camera rays on
-//! the GPU.
+//! semantics of spec/VDAG.md (the same cells as [`crate::Tracer`] but at
+//! exact ties, where both are within the tolerance of the semantics);
+//! [`GpuTracer::render`] makes and traces camera rays on the GPU.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -22,7 +22,7 @@
 //!
 //! - Host (f64, `prepare.rs`): world to grid space, the rays that need no DAG
 //!   (NaN, empty interval, outside the cube, level 0), clipping, scaling and
-//!   mirroring exactly as the CPU tracer does; afterwards the entry parameter
+//!   mirroring as the CPU tracer does; afterwards the entry parameter
 //!   and face of the cell found, in f64.
 //! - Shader (f32, `trace.wgsl`): the traversal, finding the cell, and the
 //!   dense attribute index of the hit (with a host-made table of the counts of
@@ -53,6 +53,7 @@ use dagfmt::batch::{Hit, Ray};
 use dagfmt::layout::AttributeKind;
 use dagfmt::{Dag, FormatError};
 use glam::DVec3;
+use rayon::prelude::*;
 use wgpu::util::DeviceExt as _;
 
 use crate::camera::{Camera, CameraError};
@@ -608,7 +609,10 @@ impl GpuTracer {
         self.base_params.max_iterations
     }
 
-    /// Traces every ray: the same answers as [`crate::Tracer::trace_batch`].
+    /// Traces every ray (see the module documentation for how its answers
+    /// relate to [`crate::Tracer::trace_batch`]'s). Fails on the first ray
+    /// whose level is deeper than the DAG, that exceeds the iteration limit,
+    /// or that meets a pointer outside its level.
     pub fn trace(&self, rays: &[Ray]) -> Result<Vec<Hit>, GpuError> {
         self.trace_with_stats(rays).map(|(hits, _)| hits)
     }
@@ -618,56 +622,70 @@ impl GpuTracer {
         let started = Instant::now();
         let mut stats = TraceStats::default();
         let mut hits = vec![Hit::MISS; rays.len()];
-        // Set-up of every ray; `traced[k]` is the batch index of GPU ray k.
-        let mut gpu_rays = Vec::new();
-        let mut grids = Vec::new();
-        let mut traced = Vec::new();
-        for (i, ray) in rays.iter().enumerate() {
-            match prepare::setup(&self.frame, ray) {
-                Err(prepare::LevelTooDeep(level)) => {
-                    return Err(GpuError::LevelTooDeep {
-                        ray: i,
-                        level,
-                        depth: self.frame.depth,
-                    });
-                }
-                Ok(Setup::Done(hit)) => hits[i] = hit,
-                Ok(Setup::Trace(gpu, grid)) => {
-                    gpu_rays.push(gpu);
-                    grids.push(grid);
-                    traced.push(i);
+        // One dispatch per chunk of input rays, so that host memory stays
+        // bounded whatever the batch size; set-up and answers on all cores.
+        let chunk = self.options.rays_per_dispatch as usize;
+        for (first, (rays, hits)) in (0..)
+            .step_by(chunk)
+            .zip(rays.chunks(chunk).zip(hits.chunks_mut(chunk)))
+        {
+            let setups: Vec<Result<Setup, prepare::LevelTooDeep>> = rays
+                .par_iter()
+                .map(|r| prepare::setup(&self.frame, r))
+                .collect();
+            // `traced[k]`: index in the chunk of GPU ray k, with its f64 ray.
+            let mut gpu_rays = Vec::new();
+            let mut traced = Vec::new();
+            for (i, setup) in setups.into_iter().enumerate() {
+                match setup {
+                    Err(prepare::LevelTooDeep(level)) => {
+                        return Err(GpuError::LevelTooDeep {
+                            ray: first + i,
+                            level,
+                            depth: self.frame.depth,
+                        });
+                    }
+                    Ok(Setup::Done(hit)) => hits[i] = hit,
+                    Ok(Setup::Trace(gpu, grid)) => {
+                        gpu_rays.push(gpu);
+                        traced.push((i, grid));
+                    }
                 }
             }
-        }
-        let chunk = self.options.rays_per_dispatch as usize;
-        for (start, part) in (0..).step_by(chunk).zip(gpu_rays.chunks(chunk)) {
+            if gpu_rays.is_empty() {
+                continue;
+            }
             let t0 = Instant::now();
-            let results = self.dispatch_batch(part)?;
+            let results = self.dispatch_batch(&gpu_rays)?;
             stats.gpu_time += t0.elapsed();
-            for (k, r) in results.iter().enumerate() {
-                let g = start + k;
-                let i = traced[g];
+            stats.gpu_rays += gpu_rays.len() as u64;
+            for ((i, _), r) in traced.iter().zip(&results) {
                 let info = r.cell[3];
                 stats.iterations += u64::from(r.iterations);
                 stats.max_iterations = stats.max_iterations.max(r.iterations);
                 if info & INFO_EXHAUSTED != 0 {
                     return Err(GpuError::IterationLimit {
-                        ray: i,
+                        ray: first + i,
                         limit: self.base_params.max_iterations,
                     });
                 }
                 if info & INFO_MALFORMED != 0 {
-                    return Err(GpuError::MalformedPointer { ray: i });
+                    return Err(GpuError::MalformedPointer { ray: first + i });
                 }
-                if info & INFO_HIT != 0 {
-                    let level = ((info >> INFO_LEVEL_SHIFT) & 0xff) as u8;
+            }
+            let answers: Vec<(usize, Hit)> = traced
+                .par_iter()
+                .zip(&results)
+                .filter(|(_, r)| r.cell[3] & INFO_HIT != 0)
+                .map(|((i, grid), r)| {
+                    let level = ((r.cell[3] >> INFO_LEVEL_SHIFT) & 0xff) as u8;
                     let voxel = [r.cell[0], r.cell[1], r.cell[2]];
-                    let (t, face) = prepare::answer(self.frame.depth, &grids[g], voxel, level);
+                    let (t, face) = prepare::answer(self.frame.depth, grid, voxel, level);
                     let index = self
                         .frame
                         .indexed
                         .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32);
-                    hits[i] = Hit {
+                    let hit = Hit {
                         hit: true,
                         t,
                         voxel,
@@ -675,10 +693,13 @@ impl GpuTracer {
                         face,
                         index,
                     };
-                }
+                    (*i, hit)
+                })
+                .collect();
+            for (i, hit) in answers {
+                hits[i] = hit;
             }
         }
-        stats.gpu_rays = gpu_rays.len() as u64;
         stats.total_time = started.elapsed();
         Ok((hits, stats))
     }

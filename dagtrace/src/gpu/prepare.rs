@@ -1,8 +1,8 @@
 //! Host-side set-up of batch rays (f64) and the final answer (f64).
 //!
-//! The set-up is the CPU tracer's (`tracer.rs`, `Tracer::setup`) step for
-//! step, so that the shader's f32 traversal starts from the very same numbers
-//! and finds the same cell: world to grid space in f64, rays that cannot hit
+//! The set-up follows the CPU tracer's (`tracer.rs`, `Tracer::setup`), so
+//! that the shader's f32 traversal starts from (nearly always) the same
+//! numbers and finds the same cell: world to grid space in f64, rays that cannot hit
 //! answered here (NaN, `tmin > tmax`, outside the cube, level 0), direction
 //! components below 2^-60 of the largest treated as zero, the ray clipped to the
 //! root cube, its direction scaled by a power of two (exact), far origins moved
@@ -135,7 +135,11 @@ pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
         return Ok(Setup::Done(Hit::MISS));
     };
     let (start, end) = (tmin.max(enter), tmax.min(exit));
-    if !(start <= end) {
+    // Also a miss when either bound is NaN.
+    if start
+        .partial_cmp(&end)
+        .is_none_or(|o| o == std::cmp::Ordering::Greater)
+    {
         return Ok(Setup::Done(Hit::MISS));
     }
     if level == 0 {

@@ -211,7 +211,7 @@ impl PageWriter<'_> {
             let n = bytes.len().min(room).min(CHUNK_BYTES);
             let (chunk, rest) = bytes.split_at(n);
             let buffer = &self.pages[page as usize];
-            if n % 4 == 0 {
+            if n.is_multiple_of(4) {
                 self.queue.write_buffer(buffer, in_page * 4, chunk);
             } else {
                 let mut padded = chunk.to_vec();

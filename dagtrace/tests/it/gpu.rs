@@ -1,12 +1,14 @@
 //! The GPU tracer against two references: an f64 brute-force oracle of the
-//! ray/hit semantics (DESIGN.md, with its tolerance) over the voxels of the
-//! DAG, and the CPU tracer (`dagtrace::Tracer`), whose answers the GPU tracer
-//! reproduces exactly (same set-up, same f32 traversal arithmetic).
+//! ray/hit semantics (spec/VDAG.md, with its tolerance) over the voxels of the
+//! DAG, and the CPU tracer (`dagtrace::Tracer`), whose cells the GPU tracer
+//! finds too but at exact ties (it uses the same traversal design and f32
+//! plane arithmetic; the set-up and `t` roundings differ slightly).
 //!
 //! Without a wgpu adapter (not even a software one such as Mesa's lavapipe)
 //! every test here prints that it is skipped, unless `VDAG_REQUIRE_GPU=1`,
 //! which makes that a failure. (The shader's WGSL is validated without an
 //! adapter by the unit tests in `dagtrace/src/gpu/tests.rs`.)
+#![cfg(feature = "gpu")]
 
 use std::sync::OnceLock;
 
@@ -221,7 +223,7 @@ fn to_world_dir(d: [f64; 3], t: &TestDag) -> [f32; 3] {
 // --------------------------------------------------------------- oracle --
 
 /// Entry and exit parameters of the ray into the closed box `[lo, hi]`,
-/// clipped to `[tmin, tmax]` (DESIGN.md § Ray/hit semantics).
+/// clipped to `[tmin, tmax]` (spec/VDAG.md § Ray/hit semantics).
 fn interval(
     o: &[f64; 3],
     d: &[f64; 3],
@@ -1036,4 +1038,89 @@ fn render_matches_cpu_camera_rays() {
         .time_render(&camera, w, h, 2)
         .expect("time");
     assert_eq!(timed.len(), 2);
+}
+
+#[test]
+fn command_line_gpu_backend_gives_the_cpu_answers() {
+    let Some(_) = context() else { return };
+    let mut rng = Rng(77);
+    let voxels = random_voxels(&mut rng, 6, 20);
+    let t = TestDag::new(6, AttributeKind::VoxelCount, voxels, [0.5, -1.0, 3.0], 2.0);
+    // The batch formats name levels 1..=21; level 0 (the root cell) is API-only.
+    let rays: Vec<Ray> = random_rays(&mut rng, &t, 2000)
+        .into_iter()
+        .filter(|r| r.level != Some(0))
+        .collect();
+    let cpu = cpu_hits(&t.dag(), &rays);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let vdag = dir.path().join("scene.vdag");
+    std::fs::write(&vdag, &t.bytes).expect("write");
+    let rays_path = dir.path().join("rays.txt");
+    let mut text = Vec::new();
+    dagfmt::batch::write_rays_text(&mut text, &rays).expect("format rays");
+    std::fs::write(&rays_path, text).expect("write rays");
+    let run = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_dagtrace"))
+            .args(args)
+            .output()
+            .expect("run dagtrace");
+        assert!(
+            out.status.success(),
+            "dagtrace {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let path = |p: &std::path::Path| p.to_str().expect("UTF-8 path").to_string();
+    for extra in [
+        &["--backend", "gpu"][..],
+        &["--backend", "gpu", "--short-stack", "2"],
+    ] {
+        let hits_path = dir.path().join("hits.txt");
+        let mut args = vec![
+            "trace".to_string(),
+            path(&vdag),
+            "--rays".into(),
+            path(&rays_path),
+            "--out".into(),
+            path(&hits_path),
+            "--force".into(),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let stderr = run(&args);
+        assert!(stderr.contains("tracing on the GPU"), "{stderr}");
+        let gpu = dagfmt::batch::parse_hits(&std::fs::read(&hits_path).expect("hits"))
+            .expect("parse hits");
+        assert_eq!(gpu.len(), rays.len());
+        assert_agrees_with_cpu(&rays, &gpu, &cpu, &format!("dagtrace trace {extra:?}"));
+        for (ray, hit) in rays.iter().zip(&gpu) {
+            oracle_check(&t, ray, hit, true)
+                .unwrap_or_else(|e| panic!("{extra:?}: ray {ray:?}: {hit:?}: {e}"));
+        }
+    }
+    // `render` on both back ends: the same camera rays, so nearly the same pixels.
+    let mut images = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let png = dir.path().join(format!("{backend}.png"));
+        run(&[
+            "render",
+            &path(&vdag),
+            "-o",
+            &path(&png),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--backend",
+            backend,
+        ]);
+        images.push(image::open(&png).expect("PNG").to_rgb8().into_raw());
+    }
+    let differ = images[0]
+        .chunks_exact(3)
+        .zip(images[1].chunks_exact(3))
+        .filter(|(a, b)| a != b)
+        .count();
+    assert!(differ * 50 <= 64 * 48, "{differ} of 3072 pixels differ");
 }

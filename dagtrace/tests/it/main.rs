@@ -1,5 +1,6 @@
 //! dagtrace's integration tests (one test binary, one module per concern).
 
+mod bad_input;
 mod cases;
 mod cli;
 mod common;

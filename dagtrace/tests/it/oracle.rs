@@ -1,4 +1,4 @@
-//! An independent, slow reference for the ray/hit semantics of DESIGN.md:
+//! An independent, slow reference for the ray/hit semantics of spec/VDAG.md:
 //! brute force over every occupied cell with an f64 slab test, and the
 //! acceptance rules (tolerance eps_g) that conformance applies.
 
@@ -26,7 +26,7 @@ pub struct GridRay {
     pub tmax: f64,
 }
 
-/// Entry and exit of the segment into a closed box, per DESIGN.md's slab test.
+/// Entry and exit of the segment into a closed box, per spec/VDAG.md's slab test.
 pub fn entry_exit(r: &GridRay, lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, f64, f64)> {
     if (0..3).any(|i| lo[i] > hi[i]) {
         return None; // a box shrunk to nothing
@@ -120,7 +120,7 @@ impl Reference {
         }
     }
 
-    /// eps_g and eps_t of DESIGN.md, grown by a relative 2^-20 to absorb the
+    /// eps_g and eps_t of spec/VDAG.md, grown by a relative 2^-20 to absorb the
     /// reference's own f64 rounding (it can only make the reference more lenient
     /// by a millionth of the tolerance).
     pub fn tolerance(&self, r: &GridRay) -> (f64, f64) {
@@ -232,11 +232,11 @@ impl Reference {
             }
             let reach = (2.0 * eps / s).ceil() as i64 + 1;
             let mut stops = vec![entry, exit];
-            for axis in 0..3 {
+            for (axis, &c) in cell.iter().enumerate() {
                 if r.d[axis] == 0.0 {
                     continue;
                 }
-                let c = i64::from(cell[axis]);
+                let c = i64::from(c);
                 for k in c - reach..=c + 1 + reach {
                     for plane in [k as f64 * s - eps, k as f64 * s + eps] {
                         let t = (plane - r.o[axis]) / r.d[axis];
@@ -254,11 +254,11 @@ impl Reference {
                     found = Some(t);
                     break;
                 }
-                if let Some(&next) = stops.get(i + 1) {
-                    if self.robust(level, at(0.5 * (t + next)), eps) {
-                        found = Some(t);
-                        break;
-                    }
+                if let Some(&next) = stops.get(i + 1)
+                    && self.robust(level, at(0.5 * (t + next)), eps)
+                {
+                    found = Some(t);
+                    break;
                 }
             }
             if let Some(t) = found {
@@ -268,7 +268,7 @@ impl Reference {
         best
     }
 
-    /// Checks a hit against DESIGN.md's acceptance rules; `Err` says why not.
+    /// Checks a hit against spec/VDAG.md's acceptance rules; `Err` says why not.
     pub fn check(&self, ray: &Ray, hit: &Hit) -> Result<(), String> {
         let level = ray.level.unwrap_or(self.depth);
         let r = self.grid_ray(ray);

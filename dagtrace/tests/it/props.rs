@@ -1,5 +1,5 @@
 //! Property tests: the fast tracer against the brute-force reference on random
-//! small DAGs and random rays, under DESIGN.md's acceptance rules.
+//! small DAGs and random rays, under spec/VDAG.md's acceptance rules.
 
 use dagfmt::batch::Ray;
 use dagfmt::{AttributeKind, Dag};
@@ -143,7 +143,7 @@ fn check_scene(
 ) -> Result<(), TestCaseError> {
     let mut rng = Rng(seed);
     let voxels = scene_voxels(depth, shape, &mut rng);
-    let kind = if kind_code % 2 == 0 {
+    let kind = if kind_code.is_multiple_of(2) {
         AttributeKind::VoxelCount
     } else {
         AttributeKind::None

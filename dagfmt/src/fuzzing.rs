@@ -1,0 +1,397 @@
+//! Fuzzing harnesses: one function per fuzz target of `fuzz/` (its own cargo
+//! workspace, run with `cargo fuzz`), kept in the library so that the test
+//! suite runs the very same checks over the committed regression inputs and
+//! random inputs (`tests/it/fuzz_smoke.rs`).
+//!
+//! Each harness takes arbitrary bytes, must never panic except through one of
+//! its own assertions, and asserts properties that hold for every input:
+//!
+//! - [`reader`]: whatever [`Dag::open`] accepts can be walked (every distinct
+//!   reachable node and leaf), queried and iterated without a panic, and the
+//!   answers agree with each other;
+//! - [`validator`]: a file the validator accepts opens, walks and iterates
+//!   without a single error and holds the voxel count its header states; a
+//!   file the reader refuses is never accepted;
+//! - [`transport`]: unpacking arbitrary bytes never panics nor returns more
+//!   than the limit, and unpack(pack(x)) == x;
+//! - [`batch`]: parse(write(parse(x))) == parse(x) for rays and hits, text
+//!   and binary, and a binary batch that parses is written back byte for byte.
+//!
+//! Not part of the stable API.
+
+use std::collections::HashSet;
+
+use crate::batch::{self, Hit, Ray};
+use crate::layout::{HEADER_SIZE, MAGIC};
+use crate::reader::{Dag, NodeRef};
+use crate::transport;
+use crate::validate::{self, ValidateOptions};
+use crate::{AttributeKind, stats};
+
+/// Voxels the harnesses iterate at most per input, so that a tiny file
+/// holding 2^63 voxels (a full volume) costs bounded time.
+pub const VOXEL_LIMIT: usize = 4096;
+
+/// Files of at most this depth are queried at every voxel of the volume
+/// (2^(3 D) queries).
+pub const EXHAUSTIVE_DEPTH: u8 = 4;
+
+/// The output limit the [`transport`] harness unpacks with.
+pub const TRANSPORT_LIMIT: u64 = 1 << 20;
+
+/// What walking a DAG found.
+#[derive(Debug, Default)]
+struct Walk {
+    /// Distinct nodes and leaves visited (including unreadable ones).
+    visited: usize,
+    /// Whether a node, leaf or pointer could not be read.
+    failed: bool,
+}
+
+/// Visits every distinct node and leaf reachable from the root, once each,
+/// checking what each reports about itself.
+fn walk(dag: &Dag<'_>) -> Walk {
+    let mut walk = Walk::default();
+    let Some(root) = dag.root() else {
+        return walk;
+    };
+    let leaf_level = dag.leaf_level();
+    let mut seen: HashSet<NodeRef> = HashSet::new();
+    let mut stack = vec![root];
+    while let Some(node) = stack.pop() {
+        if !seen.insert(node) {
+            continue;
+        }
+        walk.visited += 1;
+        if node.level == leaf_level {
+            match dag.leaf(node.pointer) {
+                Ok(leaf) => {
+                    assert_eq!(leaf.count(), leaf.0.count_ones());
+                    let sub = leaf.sub_brick_mask();
+                    for child in 0..8 {
+                        assert_eq!(sub >> child & 1 != 0, leaf.sub_brick(child) != 0);
+                    }
+                }
+                Err(_) => walk.failed = true,
+            }
+            continue;
+        }
+        let n = match dag.node(node.level, node.pointer) {
+            Ok(n) => n,
+            Err(_) => {
+                walk.failed = true;
+                continue;
+            }
+        };
+        assert_eq!(n.level, node.level);
+        assert_eq!(n.word, node.pointer);
+        assert!(n.record_size() >= 4 && n.record_size() % 4 == 0);
+        let mut rank = 0;
+        for child in 0..8 {
+            match n.child_pointer(child) {
+                Some(pointer) => {
+                    assert_eq!(pointer, n.pointer_at(rank));
+                    rank += 1;
+                    stack.push(NodeRef {
+                        level: node.level + 1,
+                        pointer,
+                    });
+                }
+                None => assert_eq!(n.child_mask() >> child & 1, 0),
+            }
+        }
+        assert_eq!(rank, n.child_count());
+    }
+    walk
+}
+
+/// What iterating over the voxels found.
+#[derive(Debug)]
+struct Listing {
+    /// The voxels listed (at most [`VOXEL_LIMIT`]).
+    voxels: Vec<[u32; 3]>,
+    /// Whether the iteration ended by itself without an error.
+    complete: bool,
+}
+
+/// Iterates over at most [`VOXEL_LIMIT`] voxels, checking each against the
+/// point queries.
+fn list_voxels(dag: &Dag<'_>) -> Listing {
+    let resolution = dag.resolution();
+    let mut voxels = Vec::new();
+    let mut previous: Option<u64> = None;
+    let mut it = dag.voxels();
+    let mut complete = false;
+    let counts_exact = dag.header().attribute_kind == AttributeKind::None;
+    loop {
+        if voxels.len() == VOXEL_LIMIT {
+            break;
+        }
+        let code = match it.next_morton() {
+            None => {
+                complete = true;
+                break;
+            }
+            Some(Err(_)) => {
+                // The iterator reports one error and then ends.
+                assert!(
+                    it.next_morton().is_none(),
+                    "iteration goes on after an error"
+                );
+                break;
+            }
+            Some(Ok(code)) => code,
+        };
+        assert!(
+            previous.is_none_or(|p| p < code),
+            "voxels are not listed in increasing Morton order"
+        );
+        previous = Some(code);
+        let [x, y, z] = crate::morton::decode(code);
+        assert!(
+            [x, y, z].iter().all(|&c| u64::from(c) < resolution),
+            "voxel {x} {y} {z} is outside the {resolution}^3 volume"
+        );
+        assert_eq!(
+            dag.is_set(x, y, z).ok(),
+            Some(true),
+            "listed voxel {x} {y} {z} is not set"
+        );
+        // Dense indices cost a walk with a fresh memo each: check the first
+        // ones and a sample of the rest.
+        let n = voxels.len();
+        if n >= 256 && n % 61 != 0 {
+            voxels.push([x, y, z]);
+            continue;
+        }
+        let index = dag.voxel_index(x, y, z);
+        if counts_exact {
+            // Every voxel before this one has been listed without an error, so
+            // the subtree counts of its predecessors are exact.
+            assert_eq!(
+                index.ok(),
+                Some(Some(voxels.len() as u64)),
+                "dense index of voxel {x} {y} {z}"
+            );
+        } else if let Ok(index) = index {
+            assert!(index.is_some(), "a listed voxel has no dense index");
+        }
+        voxels.push([x, y, z]);
+    }
+    Listing { voxels, complete }
+}
+
+/// The reader harness: opens `bytes` and, when that succeeds, walks every
+/// distinct reachable node, lists voxels, asks point queries and computes
+/// the statistics `dagtool info` prints, checking that they agree.
+pub fn reader(bytes: &[u8]) {
+    let Ok(dag) = Dag::open(bytes) else { return };
+    let depth = dag.header().depth;
+    assert!((crate::layout::MIN_DEPTH..=crate::layout::MAX_DEPTH).contains(&depth));
+    assert_eq!(dag.levels().len(), usize::from(depth) - 1);
+    assert_eq!(dag.header().file_size, bytes.len() as u64);
+    walk(&dag);
+    let listing = list_voxels(&dag);
+    let resolution = dag.resolution();
+    let last = (resolution - 1) as u32;
+    let outside = resolution.min(u64::from(u32::MAX)) as u32;
+    for [x, y, z] in [
+        [outside, 0, 0],
+        [0, outside, 0],
+        [0, 0, outside],
+        [u32::MAX; 3],
+    ] {
+        assert_eq!(dag.is_set(x, y, z).ok(), Some(false));
+        assert_eq!(dag.voxel_index(x, y, z).ok(), Some(None));
+    }
+    for [x, y, z] in [[0, 0, 0], [last, last, last], [last, 0, last]] {
+        let _ = dag.is_set(x, y, z);
+        let _ = dag.voxel_index(x, y, z);
+    }
+    if listing.complete && depth <= EXHAUSTIVE_DEPTH {
+        let listed: HashSet<[u32; 3]> = listing.voxels.iter().copied().collect();
+        let r = resolution as u32;
+        for x in 0..r {
+            for y in 0..r {
+                for z in 0..r {
+                    assert_eq!(
+                        dag.is_set(x, y, z).ok(),
+                        Some(listed.contains(&[x, y, z])),
+                        "is_set({x}, {y}, {z}) disagrees with the listing"
+                    );
+                }
+            }
+        }
+    }
+    if let Some(root) = dag.root() {
+        let count = dag.subtree_voxel_count(root);
+        if listing.complete && dag.header().attribute_kind == AttributeKind::None {
+            assert_eq!(count.ok(), Some(listing.voxels.len() as u64));
+        }
+    } else {
+        assert!(listing.complete && listing.voxels.is_empty());
+    }
+    let _ = stats::analyze(&dag);
+}
+
+/// The validator harness: validates `bytes`, checks the report's form, and
+/// checks that what the validator accepts, the reader reads without a single
+/// error (validator accepts ⇒ reader never fails), and that what the reader
+/// refuses, the validator does not accept.
+pub fn validator(bytes: &[u8]) {
+    let options = ValidateOptions {
+        max_errors: 1000,
+        threads: false,
+        ..ValidateOptions::default()
+    };
+    let report = validate::validate_with(bytes, &options);
+    assert!(report.errors.len() <= options.max_errors);
+    assert!(
+        report.errors.windows(2).all(|w| w[0].offset <= w[1].offset),
+        "findings are not sorted by offset"
+    );
+    let opened = Dag::open(bytes);
+    if !report.is_valid() {
+        return;
+    }
+    let dag = match opened {
+        Ok(dag) => dag,
+        Err(e) => panic!("the validator accepts a file the reader refuses: {e}"),
+    };
+    let walked = walk(&dag);
+    assert!(!walked.failed, "a node of a valid file cannot be read");
+    let listing = list_voxels(&dag);
+    let header_count = dag.header().voxel_count;
+    if listing.complete {
+        assert_eq!(listing.voxels.len() as u64, header_count);
+    } else {
+        assert_eq!(
+            listing.voxels.len(),
+            VOXEL_LIMIT,
+            "listing the voxels of a valid file fails"
+        );
+        assert!(header_count >= VOXEL_LIMIT as u64);
+    }
+    if let Some(root) = dag.root() {
+        assert_eq!(dag.subtree_voxel_count(root).ok(), Some(header_count));
+    } else {
+        assert_eq!(header_count, 0);
+    }
+    let analyzed = stats::analyze(&dag);
+    assert!(
+        analyzed.is_ok(),
+        "statistics of a valid file fail: {analyzed:?}"
+    );
+}
+
+/// The transport harness: unpacks `bytes` with limit [`TRANSPORT_LIMIT`],
+/// then packs a `.vdag`-shaped copy of the bytes and checks the round trip.
+pub fn transport(bytes: &[u8]) {
+    if let Ok(out) = transport::unpack(bytes, TRANSPORT_LIMIT) {
+        assert!(out.len() as u64 <= TRANSPORT_LIMIT);
+        assert!(out.len() as u64 <= transport::MAX_EXPANSION * bytes.len() as u64);
+        assert!(out.starts_with(&MAGIC));
+        if let Ok(again) = transport::pack(&out, 1) {
+            assert_eq!(
+                transport::unpack(&again, TRANSPORT_LIMIT).ok().as_deref(),
+                Some(&out[..])
+            );
+        }
+    }
+    // Any bytes become packable once they carry the magic and their length.
+    let mut file = bytes.to_vec();
+    if file.len() < HEADER_SIZE {
+        file.resize(HEADER_SIZE, 0);
+    }
+    file[..MAGIC.len()].copy_from_slice(&MAGIC);
+    let len = file.len() as u64;
+    file[64..72].copy_from_slice(&len.to_le_bytes());
+    let packed = transport::pack(&file, 1).expect("packing a .vdag-shaped file");
+    assert!(transport::is_transport(&packed));
+    let unpacked = transport::unpack(&packed, len).expect("unpacking what was packed");
+    assert_eq!(unpacked, file);
+    if len > HEADER_SIZE as u64 {
+        // One byte under the size it declares: refused before decoding.
+        assert!(matches!(
+            transport::unpack(&packed, len - 1),
+            Err(transport::TransportError::TooLarge { .. })
+        ));
+    }
+    // Cut short, or with a byte after the frame: refused.
+    assert!(transport::unpack(&packed[..packed.len() - 1], len).is_err());
+    let mut trailing = packed;
+    trailing.push(0);
+    assert!(matches!(
+        transport::unpack(&trailing, len),
+        Err(transport::TransportError::TrailingData(1))
+    ));
+}
+
+/// Whether two floats are the same value, any NaN matching any NaN (the text
+/// form writes every NaN as `NaN`).
+fn same_f32(a: f32, b: f32) -> bool {
+    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan())
+}
+
+fn same_rays(a: &[Ray], b: &[Ray]) -> bool {
+    a.len() == b.len()
+        && a.iter().zip(b).all(|(a, b)| {
+            let fa = [a.origin, a.dir, [a.tmin, a.tmax, 0.0]];
+            let fb = [b.origin, b.dir, [b.tmin, b.tmax, 0.0]];
+            a.level == b.level
+                && fa
+                    .iter()
+                    .flatten()
+                    .zip(fb.iter().flatten())
+                    .all(|(&x, &y)| same_f32(x, y))
+        })
+}
+
+fn same_hits(a: &[Hit], b: &[Hit]) -> bool {
+    a.len() == b.len()
+        && a.iter().zip(b).all(|(a, b)| {
+            a.hit == b.hit
+                && same_f32(a.t, b.t)
+                && a.voxel == b.voxel
+                && a.level == b.level
+                && a.face == b.face
+                && a.index == b.index
+        })
+}
+
+/// The batch harness: parses `bytes` as rays and as hits; whatever parses is
+/// written in both forms and parsed again, and must come back the same.
+pub fn batch(bytes: &[u8]) {
+    if let Ok(rays) = batch::parse_rays(bytes) {
+        let mut text = Vec::new();
+        batch::write_rays_text(&mut text, &rays).expect("writing parsed rays as text");
+        let again = batch::parse_rays(&text).expect("parsing written text rays");
+        assert!(same_rays(&rays, &again), "text rays do not round-trip");
+        let mut binary = Vec::new();
+        batch::write_rays_binary(&mut binary, &rays).expect("writing parsed rays as binary");
+        let again = batch::parse_rays(&binary).expect("parsing written binary rays");
+        assert!(same_rays(&rays, &again), "binary rays do not round-trip");
+        if bytes.starts_with(&batch::RAYS_MAGIC) {
+            assert_eq!(
+                binary, bytes,
+                "a binary ray batch is not written back as read"
+            );
+        }
+    }
+    if let Ok(hits) = batch::parse_hits(bytes) {
+        let mut text = Vec::new();
+        batch::write_hits_text(&mut text, &hits).expect("writing parsed hits as text");
+        let again = batch::parse_hits(&text).expect("parsing written text hits");
+        assert!(same_hits(&hits, &again), "text hits do not round-trip");
+        let mut binary = Vec::new();
+        batch::write_hits_binary(&mut binary, &hits).expect("writing parsed hits as binary");
+        let again = batch::parse_hits(&binary).expect("parsing written binary hits");
+        assert!(same_hits(&hits, &again), "binary hits do not round-trip");
+        if bytes.starts_with(&batch::HITS_MAGIC) {
+            assert_eq!(
+                binary, bytes,
+                "a binary hit batch is not written back as read"
+            );
+        }
+    }
+}

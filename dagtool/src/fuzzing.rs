@@ -1,0 +1,92 @@
+//! Fuzzing harnesses for the importers: one function per fuzz target of
+//! `fuzz/` (its own cargo workspace, run with `cargo fuzz`), kept in the
+//! library so that the test suite runs the same checks over the committed
+//! regression inputs and random inputs (`tests/it/fuzz_smoke.rs`).
+//!
+//! - [`obj_import`]: an OBJ held in memory loads or fails cleanly, and a mesh
+//!   that passes [`Mesh::check`] can be placed in the root cube, snapped and
+//!   tested for closedness without a panic;
+//! - [`voxel_list`]: a voxel list held in memory (text or binary) loads or
+//!   fails cleanly, and what loads is sorted, inside its volume, and comes
+//!   back unchanged through the binary form.
+//!
+//! Not part of the stable API.
+
+use crate::mesh::{GridMapping, Mesh, SnappedMesh};
+use crate::voxlist;
+
+/// The depth the [`obj_import`] harness places meshes at.
+pub const OBJ_DEPTH: u8 = 6;
+
+/// The OBJ import harness.
+pub fn obj_import(bytes: &[u8]) {
+    let Ok(mesh) = Mesh::load_obj_bytes(bytes, "fuzz.obj") else {
+        return;
+    };
+    assert_eq!(mesh.triangles.len(), mesh.triangle_material.len());
+    for t in 0..mesh.triangles.len() {
+        let _ = mesh.triangle_color(t);
+    }
+    let Ok(check) = mesh.check() else { return };
+    assert!(
+        mesh.triangles
+            .iter()
+            .flatten()
+            .all(|&i| (i as usize) < mesh.vertices.len()),
+        "a checked mesh uses a vertex it does not have"
+    );
+    assert!((0..3).all(|a| check.min[a] <= check.max[a]));
+    assert!(check.degenerate < mesh.triangles.len() as u64);
+    let Ok(mapping) = GridMapping::fit(check.min, check.max, OBJ_DEPTH) else {
+        return;
+    };
+    let units = 1i64 << (u32::from(OBJ_DEPTH) + crate::geom::SUBVOXEL_BITS);
+    let snapped = SnappedMesh::new(&mesh, &mapping);
+    assert!(
+        snapped
+            .vertices
+            .iter()
+            .flatten()
+            .all(|&c| (0..=units).contains(&c)),
+        "a snapped vertex lies outside the lattice"
+    );
+    for t in 0..snapped.triangles.len() {
+        let _ = snapped.triangle(t as u32);
+    }
+    let _ = snapped.is_closed();
+}
+
+/// The voxel list harness: reads `bytes` with no depth given and with the
+/// depth 4 given, and checks what loads.
+pub fn voxel_list(bytes: &[u8]) {
+    for depth in [None, Some(4)] {
+        let Ok(list) = voxlist::read_bytes(bytes, "fuzz.voxels", depth) else {
+            continue;
+        };
+        if let Some(d) = depth {
+            assert_eq!(list.depth, d);
+        }
+        assert!(!list.codes.is_empty());
+        assert!(list.records >= list.codes.len() as u64);
+        assert!(
+            list.codes.windows(2).all(|w| w[0] < w[1]),
+            "codes are not strictly increasing"
+        );
+        let resolution = 1u64 << list.depth;
+        let voxels: Vec<[u32; 3]> = list
+            .codes
+            .iter()
+            .map(|&c| dagfmt::morton::decode(c))
+            .collect();
+        assert!(
+            voxels.iter().flatten().all(|&c| u64::from(c) < resolution),
+            "a voxel lies outside the {resolution}^3 volume"
+        );
+        let mut binary = Vec::new();
+        voxlist::write_binary(&mut binary, list.depth, &voxels).expect("writing to memory");
+        let again = voxlist::read_bytes(&binary, "again", Some(list.depth))
+            .expect("reading a written binary list");
+        assert_eq!(again.codes, list.codes);
+        assert_eq!(again.records, list.codes.len() as u64);
+    }
+}

@@ -1,0 +1,236 @@
+//! Smoke runs of the importer fuzz harnesses (`dagtool::fuzzing`, the bodies
+//! of the `obj_import` and `voxel_list` targets in `fuzz/`), so that
+//! `cargo test` exercises them without libFuzzer: over every committed
+//! regression input and seed (`fuzz/regressions/<target>/`,
+//! `fuzz/seeds/<target>/`), then over a few thousand deterministic mutations
+//! of the seeds and of generated inputs.
+
+use std::path::{Path, PathBuf};
+
+use dagtool::fuzzing;
+use dagtool::voxlist;
+
+/// A small deterministic generator (SplitMix64).
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+}
+
+/// The committed regression inputs and seeds of `target`, with their bytes.
+fn committed(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
+    let fuzz = Path::new(env!("CARGO_MANIFEST_DIR")).join("../fuzz");
+    let mut files = Vec::new();
+    for kind in ["regressions", "seeds"] {
+        let Ok(entries) = std::fs::read_dir(fuzz.join(kind).join(target)) else {
+            continue;
+        };
+        let mut paths: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_file() && p.file_name().is_some_and(|n| n != "README.md"))
+            .collect();
+        paths.sort();
+        for path in paths {
+            let bytes = std::fs::read(&path).unwrap();
+            files.push((path, bytes));
+        }
+    }
+    files
+}
+
+/// Tokens that OBJ and voxel-list parsers treat specially, spliced in by
+/// the mutations.
+const TOKENS: &[&[u8]] = &[
+    b"\n",
+    b" ",
+    b"/",
+    b"-",
+    b"#",
+    b"f ",
+    b"v ",
+    b"l ",
+    b"p ",
+    b"o x\n",
+    b"g\n",
+    b"mtllib a.mtl\n",
+    b"usemtl m\n",
+    b"-1",
+    b"0",
+    b"4294967296",
+    b"-9223372036854775808",
+    b"9223372036854775807",
+    b"1e39",
+    b"nan",
+    b"inf",
+    b"//",
+    b"\t",
+    b"\r\n",
+    b"VVOX",
+    b"\xff\xfe",
+];
+
+/// One mutation of `input`: a bit flip, a random or token insertion, a
+/// deletion, a truncation or a duplicated range.
+fn mutate(rng: &mut Rng, input: &[u8]) -> Vec<u8> {
+    let mut out = input.to_vec();
+    let len = out.len();
+    match rng.below(6) {
+        0 if len > 0 => {
+            let bit = rng.below(len * 8);
+            out[bit / 8] ^= 1 << (bit % 8);
+        }
+        1 => {
+            let token = TOKENS[rng.below(TOKENS.len())];
+            let at = rng.below(len + 1);
+            out.splice(at..at, token.iter().copied());
+        }
+        2 if len > 0 => {
+            let at = rng.below(len);
+            let n = 1 + rng.below(8.min(len - at));
+            out.drain(at..at + n);
+        }
+        3 => out.truncate(rng.below(len + 1)),
+        4 if len > 0 => {
+            let at = rng.below(len);
+            let n = 1 + rng.below(32.min(len - at));
+            let copy = out[at..at + n].to_vec();
+            out.splice(at..at, copy);
+        }
+        _ => {
+            let at = rng.below(len + 1);
+            out.insert(at, rng.next() as u8);
+        }
+    }
+    out
+}
+
+/// Runs `harness` over each committed input and `per_input` chains of
+/// mutations of it (each chain applying up to four mutations).
+fn run(target: &str, harness: fn(&[u8]), extra: Vec<Vec<u8>>, per_input: usize) -> usize {
+    let mut inputs: Vec<(String, Vec<u8>)> = committed(target)
+        .into_iter()
+        .map(|(p, b)| (p.display().to_string(), b))
+        .collect();
+    inputs.extend(
+        extra
+            .into_iter()
+            .enumerate()
+            .map(|(i, b)| (format!("generated input {i}"), b)),
+    );
+    assert!(inputs.len() >= 3, "{target}: the seeds are missing");
+    let mut rng = Rng(target.len() as u64);
+    let mut runs = 0;
+    for (name, input) in &inputs {
+        harness(input);
+        for m in 0..per_input {
+            let mut mutated = input.clone();
+            for _ in 0..1 + rng.below(4) {
+                mutated = mutate(&mut rng, &mutated);
+            }
+            if let Err(panic) = std::panic::catch_unwind(|| harness(&mutated)) {
+                eprintln!(
+                    "{target}: mutation {m} of {name} failed on {:?}",
+                    String::from_utf8_lossy(&mutated)
+                );
+                std::panic::resume_unwind(panic);
+            }
+            runs += 1;
+        }
+    }
+    runs
+}
+
+#[test]
+fn obj_import_harness_over_committed_and_mutated_meshes() {
+    // A generated grid of quads, and polygons with relative indices.
+    let mut grid = String::new();
+    for y in 0..4 {
+        for x in 0..4 {
+            grid.push_str(&format!("v {x} {y} {}\n", (x * y) % 3));
+        }
+    }
+    for y in 0..3 {
+        for x in 0..3 {
+            let i = 1 + y * 4 + x;
+            grid.push_str(&format!("f {i} {} {} {}\n", i + 1, i + 5, i + 4));
+        }
+    }
+    let fan = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0.5 0.5 1\nf -5 -4 -3 -2\nf -1 -5 -4\n";
+    let runs = run(
+        "obj_import",
+        fuzzing::obj_import,
+        vec![grid.into_bytes(), fan.as_bytes().to_vec()],
+        400,
+    );
+    assert!(runs >= 2000, "{runs} runs");
+}
+
+#[test]
+fn voxel_list_harness_over_committed_and_mutated_lists() {
+    let mut binary = Vec::new();
+    voxlist::write_binary(
+        &mut binary,
+        5,
+        &[[0, 0, 0], [31, 30, 29], [7, 8, 9], [7, 8, 9]],
+    )
+    .unwrap();
+    let text = b"# generated\n0 0 0\n3 1 2\n3 1 2 # again\n15 0 7\n".to_vec();
+    let runs = run("voxel_list", fuzzing::voxel_list, vec![binary, text], 600);
+    assert!(runs >= 2000, "{runs} runs");
+    // Hostile binary counts: checked against the length before allocating.
+    for count in [u64::MAX, u64::MAX / 12, 1 << 40, 2] {
+        let mut bytes = voxlist::BINARY_MAGIC.to_vec();
+        bytes.extend_from_slice(&1u32.to_le_bytes());
+        bytes.extend_from_slice(&5u32.to_le_bytes());
+        bytes.extend_from_slice(&count.to_le_bytes());
+        bytes.extend_from_slice(&[0; 12]);
+        let result = voxlist::read_bytes(&bytes, "hostile", None);
+        assert!(
+            result.is_err(),
+            "count {count} over one record was accepted"
+        );
+        fuzzing::voxel_list(&bytes);
+    }
+}
+
+#[test]
+fn obj_indices_tobj_cannot_handle_are_refused_with_the_line() {
+    use dagtool::mesh::Mesh;
+    for (obj, expected) in [
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/-5 2/-5 3/-5\n",
+            "line 5: texture coordinate index -5",
+        ),
+        (
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//9223372036854775807 2//1 3//1\n",
+            "line 5: normal index 9223372036854775807",
+        ),
+        ("v 0 0 0\nf -4 1 1\n", "line 2: vertex index -4"),
+        ("v 0 0 0\nl 0 1\n", "line 2: vertex index 0"),
+    ] {
+        let err = Mesh::load_obj_bytes(obj.as_bytes(), "t.obj")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(expected), "{err}");
+        assert!(err.starts_with("t.obj: "), "{err}");
+    }
+    // Relative indices within range, and forward references, still load.
+    let ok = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf -3/-1 -2/-1 -1/-1\nf 1 2 3\n";
+    assert_eq!(
+        Mesh::load_obj_bytes(ok.as_bytes(), "t.obj")
+            .unwrap()
+            .triangles
+            .len(),
+        2
+    );
+}

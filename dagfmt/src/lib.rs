@@ -11,8 +11,9 @@
 //! - `fuzzing` (hidden): the harnesses of the fuzz targets in `fuzz/`, also
 //!   run by the test suite.
 //!
-//! The library does no file I/O except [`mmap`] (feature `mmap`), a helper
-//! that memory-maps a file for the reader.
+//! The library does no file I/O except two helpers for the tools: [`mmap`]
+//! (feature `mmap`), which memory-maps a file for the reader, and [`output`]
+//! (feature `output`), which writes a file atomically.
 #![deny(missing_docs)]
 
 pub mod batch;
@@ -24,6 +25,8 @@ pub mod layout;
 #[cfg(feature = "mmap")]
 pub mod mmap;
 pub mod morton;
+#[cfg(feature = "output")]
+pub mod output;
 pub mod reader;
 pub mod stats;
 pub mod transport;

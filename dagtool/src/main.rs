@@ -392,17 +392,7 @@ fn main() -> ExitCode {
                 let _ = e.print();
                 return ExitCode::SUCCESS;
             }
-            // clap's message, up to its usage and tips, as one line (the
-            // missing arguments are listed on the lines after the first).
-            let text = e.to_string();
-            let message: Vec<&str> = text
-                .lines()
-                .map(str::trim)
-                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("tip:"))
-                .filter(|l| !l.is_empty())
-                .collect();
-            let first = message.join(" ");
-            let first = first.strip_prefix("error: ").unwrap_or(&first);
+            let first = dagtrace::cli::usage_error_line(&e);
             eprintln!("dagtool: error: {first} (see dagtool --help)");
             return ExitCode::from(2);
         }

@@ -22,6 +22,7 @@
 #![deny(missing_docs)]
 
 pub mod camera;
+pub mod cli;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 mod parallel;

@@ -6,13 +6,14 @@
 //! replaced with `--force`.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dagfmt::Dag;
 use dagfmt::mmap::MappedFile;
+use dagfmt::output::OutputError;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
 use dagtrace::render::{Shade, render, shade_hits};
@@ -210,30 +211,33 @@ fn open_source(path: &Path, validate: bool) -> Result<Source, Failure> {
     Ok(source)
 }
 
-/// Refuses an output in a missing folder, an output that is a folder, and
-/// replacing `path` without `--force`; checked before any work is done.
-fn check_output(path: &Path, force: bool) -> Result<(), Failure> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    if !dir.is_dir() {
-        return fail(format!(
+/// Words an output failure for `path` in dagtrace's style.
+fn output_failure(path: &Path, error: OutputError) -> Failure {
+    Failure(match error {
+        OutputError::MissingDirectory(dir) => format!(
             "{}: the output folder {} does not exist",
             path.display(),
             dir.display()
-        ));
-    }
-    if path.is_dir() {
-        return fail(format!("{}: the output is a folder", path.display()));
-    }
-    if !force && path.symlink_metadata().is_ok() {
-        return fail(format!(
+        ),
+        OutputError::IsDirectory => format!("{}: the output is a folder", path.display()),
+        OutputError::Exists => format!(
             "{} already exists (use --force to replace it)",
             path.display()
-        ));
-    }
-    Ok(())
+        ),
+        OutputError::NoFileName => format!("{}: the output names no file", path.display()),
+        OutputError::CreateTemp(dir, e) => {
+            format!("{}: cannot create a file there: {e}", dir.display())
+        }
+        OutputError::Write(e) | OutputError::Sync(e) | OutputError::Rename(e) => {
+            format!("{}: {e}", path.display())
+        }
+    })
+}
+
+/// Refuses an output in a missing folder, an output that is a folder, and
+/// replacing `path` without `--force`; checked before any work is done.
+fn check_output(path: &Path, force: bool) -> Result<(), Failure> {
+    dagfmt::output::check_output(path, force).map_err(|e| output_failure(path, e))
 }
 
 /// Writes `path` through a temporary file in the same folder, renamed into
@@ -241,46 +245,11 @@ fn check_output(path: &Path, force: bool) -> Result<(), Failure> {
 fn write_atomically(
     path: &Path,
     force: bool,
-    write: impl FnOnce(&mut BufWriter<&File>) -> std::io::Result<()>,
+    write: impl FnOnce(&mut BufWriter<&mut File>) -> std::io::Result<()>,
 ) -> Result<(), Failure> {
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    let mut builder = tempfile::Builder::new();
-    builder.prefix(".dagtrace-").suffix(".tmp");
-    // tempfile creates files readable by their owner only; the output gets the
-    // ordinary permissions of a new file (0666 less the umask).
-    #[cfg(unix)]
-    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-    let temp = builder.tempfile_in(dir).map_err(|e| {
-        Failure(format!(
-            "{}: cannot create a file there: {e}",
-            dir.display()
-        ))
-    })?;
-    {
-        let mut out = BufWriter::new(temp.as_file());
-        write(&mut out)
-            .and_then(|()| out.flush())
-            .map_err(|e| Failure(format!("{}: {e}", path.display())))?;
-    }
-    let persisted = if force {
-        temp.persist(path)
-    } else {
-        temp.persist_noclobber(path)
-    };
-    persisted.map_err(|e| {
-        if e.error.kind() == std::io::ErrorKind::AlreadyExists {
-            Failure(format!(
-                "{} already exists (use --force to replace it)",
-                path.display()
-            ))
-        } else {
-            Failure(format!("{}: {}", path.display(), e.error))
-        }
-    })?;
-    Ok(())
+    dagfmt::output::write_atomic(path, force, write)
+        .map(drop)
+        .map_err(|e| output_failure(path, e))
 }
 
 /// A tracer that runs on some back end.
@@ -451,17 +420,7 @@ fn main() -> ExitCode {
                 return ExitCode::SUCCESS;
             }
             // Usage errors are one line too, with status 2.
-            // clap's message, up to its usage and tips, as one line (the
-            // missing arguments are listed on the lines after the first).
-            let text = e.to_string();
-            let message: Vec<&str> = text
-                .lines()
-                .map(str::trim)
-                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("tip:"))
-                .filter(|l| !l.is_empty())
-                .collect();
-            let first = message.join(" ");
-            let first = first.strip_prefix("error: ").unwrap_or(&first);
+            let first = dagtrace::cli::usage_error_line(&e);
             eprintln!("dagtrace: error: {first} (see dagtrace --help)");
             return ExitCode::from(2);
         }

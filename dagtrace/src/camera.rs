@@ -145,11 +145,42 @@ impl CameraFrame {
             .collect()
     }
 
+    /// All rays of a `width` x `height` image in tile order — square tiles
+    /// of [`TILE`] x [`TILE`] pixels, tiles row by row from the top, pixels
+    /// row by row inside a tile — with the pixel index (`y * width + x`) of
+    /// each ray. Neighbouring rays then go in the same direction, so that the
+    /// tracer's batch API traces them as packets (see [`crate::Tracer`]).
+    pub fn rays_in_tiles(
+        &self,
+        width: u32,
+        height: u32,
+        level: Option<u8>,
+    ) -> (Vec<Ray>, Vec<u32>) {
+        let count = width as usize * height as usize;
+        let mut rays = Vec::with_capacity(count);
+        let mut pixels = Vec::with_capacity(count);
+        for ty in (0..height).step_by(TILE as usize) {
+            for tx in (0..width).step_by(TILE as usize) {
+                for y in ty..(ty + TILE).min(height) {
+                    for x in tx..(tx + TILE).min(width) {
+                        rays.push(self.ray(x, y, width, height, level));
+                        pixels.push(y * width + x);
+                    }
+                }
+            }
+        }
+        (rays, pixels)
+    }
+
     /// The unit view direction.
     pub fn forward(&self) -> [f64; 3] {
         self.forward.to_array()
     }
 }
+
+/// Edge in pixels of the square tiles of [`CameraFrame::rays_in_tiles`]: 64
+/// rays, one packet of the batch API.
+pub const TILE: u32 = 8;
 
 /// Level down to which [`occupied_box`] walks the tree: cells of 1/64 of the cube.
 const BOX_LEVEL: u8 = 6;

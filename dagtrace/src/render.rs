@@ -43,10 +43,15 @@ pub fn render(
     shade: Shade,
     level: Option<u8>,
 ) -> Result<Vec<u8>, TraceError> {
-    let rays = camera.rays(width, height, level);
+    // Rays in tiles, which the batch API traces as packets; hits back to rows.
+    let (rays, pixels) = camera.rays_in_tiles(width, height, level);
     let colored = shade == Shade::Color && tracer.colors().is_some();
     let tracer = tracer.clone().with_index(colored);
-    let hits = tracer.trace_batch(&rays)?;
+    let tiled = tracer.trace_batch(&rays)?;
+    let mut hits = vec![Hit::MISS; tiled.len()];
+    for (hit, &pixel) in tiled.into_iter().zip(&pixels) {
+        hits[pixel as usize] = hit;
+    }
     Ok(shade_hits(&hits, shade, |i| tracer.color(i)))
 }
 

@@ -28,14 +28,18 @@
 //!    it does not hit it, and a `tmax` exactly at a cell's entry does). Both
 //!    answers are within the tolerance of the semantics.
 //!
-//!    The traversal is a resumable [`Walk`]: it stops before every read of a
-//!    node or leaf below the root, after prefetching it. [`Tracer::trace`] resumes at
-//!    once; [`Tracer::trace_sequential_into`] (and so [`Tracer::trace_batch`],
-//!    which runs it on every core) keeps [`LANES`] rays in flight and resumes
-//!    them in turn, so that the cache misses of one ray, which bound the
-//!    traversal of large DAGs, overlap with the work on the others. Every ray
-//!    runs through the very same steps either way, so the answers are
-//!    identical.
+//!    [`Tracer::trace`] runs the traversal in one loop ([`Tracer::descend`]).
+//!    The batch API ([`Tracer::trace_sequential_into`], and so
+//!    [`Tracer::trace_batch`], which runs it on every core) runs the same steps
+//!    as a resumable [`Walk`] that stops before every read of a node or leaf
+//!    below the root, after prefetching it, and keeps [`LANES`] rays in flight,
+//!    resuming them in turn, so that the cache misses of one ray, which bound
+//!    the traversal of large DAGs, overlap with the work on the others. Every
+//!    ray runs through the very same steps either way, so the answers are
+//!    identical. Runs of coherent rays (a shared origin, such as a camera's)
+//!    are traced as packets instead (module `packet`): one beam pass per
+//!    packet finds the coarse occupied cells any of its rays can meet, and each
+//!    ray is traced only through those, with the same steps.
 //! 3. **Answer.** The first occupied cell found is reported with its entry
 //!    parameter and face, computed from the same plane parameters (the latest
 //!    slab entry of the moving axes, or `tmin` and face 0 when that is earlier),
@@ -75,7 +79,7 @@ const MAX_STORED_LEVELS: usize = 20;
 
 /// Length of the per-level arrays: a power of two above the number of levels,
 /// so that indexing with `level & LEVEL_INDEX` needs no bounds check.
-const LEVEL_SLOTS: usize = 32;
+pub(crate) const LEVEL_SLOTS: usize = 32;
 const LEVEL_INDEX: usize = LEVEL_SLOTS - 1;
 
 /// Level of the cells whose bounding box rays are clipped to: 1/64 of the cube.
@@ -104,7 +108,7 @@ pub enum TraceError {
 /// A bounds-check failure inside the traversal: small and `Copy` so that the
 /// hot path's `Result` stays cheap; turned into a [`FormatError`] at the API.
 #[derive(Clone, Copy, Debug)]
-struct Fault {
+pub(crate) struct Fault {
     level: u8,
     /// Byte offset inside the level section of the read that failed.
     at: u64,
@@ -122,8 +126,8 @@ fn record(fault: &mut Option<Fault>, f: Fault) -> u32 {
 
 /// One stored level: its bytes and pointer width.
 #[derive(Clone, Copy, Debug, Default)]
-struct Level<'a> {
-    bytes: &'a [u8],
+pub(crate) struct Level<'a> {
+    pub(crate) bytes: &'a [u8],
     file_offset: u64,
     /// Pointer width in bytes (node levels).
     width: u32,
@@ -142,7 +146,7 @@ impl Level<'_> {
 
     /// The header word of the node at `word`.
     #[inline(always)]
-    fn header(&self, level: u8, word: u32) -> Result<u32, Fault> {
+    pub(crate) fn header(&self, level: u8, word: u32) -> Result<u32, Fault> {
         let at = word as usize * 4;
         self.read_u32(at).ok_or(Fault {
             level,
@@ -153,7 +157,7 @@ impl Level<'_> {
 
     /// Pointer number `rank` of the node at `word`.
     #[inline(always)]
-    fn pointer(&self, level: u8, word: u32, rank: u32) -> Result<u32, Fault> {
+    pub(crate) fn pointer(&self, level: u8, word: u32, rank: u32) -> Result<u32, Fault> {
         let at = word as usize * 4 + 4 + (rank * self.width) as usize;
         // Fast path: one 32-bit load, masked to the pointer width. The bytes
         // after the pointer belong to the same record's padding or to the next
@@ -235,49 +239,49 @@ impl Level<'_> {
 
 /// One entry of the traversal stack: an interior node on the current path.
 #[derive(Clone, Copy, Debug, Default)]
-struct Frame {
+pub(crate) struct Frame {
     /// Word offset of the node in its level.
-    word: u32,
+    pub(crate) word: u32,
     /// The node's child mask.
-    mask: u8,
+    pub(crate) mask: u8,
     /// Children the ray passes through that are still to be visited.
-    remaining: u8,
+    pub(crate) remaining: u8,
     /// The child (file index) being visited below this node, to step back to
     /// this node's position when the visit ends.
-    last: u8,
+    pub(crate) last: u8,
     /// Explicit padding, so that a stack of frames is zeroed with a memset.
-    _pad: u8,
+    pub(crate) _pad: u8,
 }
 
-type Stack = [Frame; LEVEL_SLOTS];
+pub(crate) type Stack = [Frame; LEVEL_SLOTS];
 
 /// The ray in the traversal's f32 mirrored grid frame.
 #[derive(Clone, Copy, Debug, Default)]
-struct Prepared {
+pub(crate) struct Prepared {
     /// Origin (mirrored, re-based, grid units).
-    origin: Vec3A,
+    pub(crate) origin: Vec3A,
     /// 1 / direction (all positive).
-    inv_dir: Vec3A,
-    tmin: f32,
-    tmax: f32,
+    pub(crate) inv_dir: Vec3A,
+    pub(crate) tmin: f32,
+    pub(crate) tmax: f32,
     /// Direction octant: bit i set when axis i is mirrored.
-    neg: usize,
+    pub(crate) neg: usize,
     /// Axes whose direction is not (treated as) zero.
-    moving: BVec3A,
+    pub(crate) moving: BVec3A,
     /// Level traced.
-    level: u8,
+    pub(crate) level: u8,
     /// The traversal's parameter is `t' = (t - base) * scale`: `1 / scale`.
     inv_scale: f64,
-    base: f64,
+    pub(crate) base: f64,
 }
 
 /// A first occupied cell as the traversal finds it: the mirrored grid
 /// position of its lower corner, its level and the leaf reached.
-type Cell = (Vec3A, u8, u32);
+pub(crate) type Cell = (Vec3A, u8, u32);
 
 /// The read a suspended [`Walk`] resumes with.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-enum Pending {
+pub(crate) enum Pending {
     /// The header of node `target` of the walk's level (the node it stands on).
     #[default]
     Node,
@@ -291,28 +295,38 @@ enum Pending {
 /// reads are under way (see [`Tracer::trace_sequential_into`]). The path of
 /// nodes lives in a separate [`Stack`].
 #[derive(Clone, Copy, Debug, Default)]
-struct Walk {
+pub(crate) struct Walk {
     /// The ray, clipped to the occupied box.
-    q: Prepared,
+    pub(crate) q: Prepared,
     /// The ray's own `tmin` (for the entry face of the answer).
-    ray_tmin: f32,
+    pub(crate) ray_tmin: f32,
     /// Level where the descent stops (see [`Tracer::start`]).
-    stop: u8,
+    pub(crate) stop: u8,
+    /// Level of the node whose subtree is walked (the walk ends when it would
+    /// step back above it): 0, the root, but for the walks of packet rays
+    /// through the cells of their beam (see `packet`).
+    pub(crate) top: u8,
     /// Level of the node the walk stands on.
-    level: u8,
-    pending: Pending,
+    pub(crate) level: u8,
+    pub(crate) pending: Pending,
     /// Mirrored grid position of that node's lower corner, and its edge.
-    pos: Vec3A,
-    size: f32,
+    pub(crate) pos: Vec3A,
+    pub(crate) size: f32,
     /// The node word or leaf index to read next.
-    target: u32,
+    pub(crate) target: u32,
     /// Mirrored grid position of the brick to read next.
-    brick_pos: Vec3A,
+    pub(crate) brick_pos: Vec3A,
+    /// While a brick is pending: the node the walk stands on (its word, child
+    /// mask, the children still to visit, and the child being read).
+    pub(crate) word: u32,
+    pub(crate) mask: u8,
+    pub(crate) remaining: u8,
+    pub(crate) last: u8,
 }
 
 impl Walk {
     /// The prepared ray with its own `tmin`, for [`Tracer::found`].
-    fn ray(&self) -> Prepared {
+    pub(crate) fn ray(&self) -> Prepared {
         Prepared {
             tmin: self.ray_tmin,
             ..self.q
@@ -322,7 +336,7 @@ impl Walk {
 
 /// Rays in flight at once in [`Tracer::trace_sequential_into`]: enough to
 /// cover the latency of a read from memory with the work of the others.
-const LANES: usize = 8;
+pub(crate) const LANES: usize = 8;
 
 /// One ray in flight in [`Tracer::trace_sequential_into`].
 #[derive(Clone, Copy, Debug, Default)]
@@ -334,7 +348,7 @@ struct Lane {
 }
 
 /// What [`Tracer::begin`] made of a ray.
-enum Begun {
+pub(crate) enum Begun {
     /// Answered without a traversal.
     Done(Hit),
     /// To be traversed.
@@ -370,16 +384,16 @@ struct Found {
 /// count is saturated (at most one entry per such node in the file).
 #[derive(Clone, Debug)]
 pub struct Tracer<'a> {
-    levels: [Level<'a>; LEVEL_SLOTS],
-    depth: u8,
+    pub(crate) levels: [Level<'a>; LEVEL_SLOTS],
+    pub(crate) depth: u8,
     leaf_level: u8,
-    empty: bool,
+    pub(crate) empty: bool,
     attribute_kind: AttributeKind,
-    root_min: [f64; 3],
+    pub(crate) root_min: [f64; 3],
     /// Grid units per world unit: 2^D / root_size.
-    grid_scale: f64,
+    pub(crate) grid_scale: f64,
     /// Edge length in grid units of a cell of each level: 2^(D - level).
-    cell_size: [f32; MAX_STORED_LEVELS + 2],
+    pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
     compute_index: bool,
@@ -534,12 +548,8 @@ impl<'a> Tracer<'a> {
         let mut fault = None;
         match self.begin(ray, &mut stack, &mut fault)? {
             Begun::Done(hit) => Ok(hit),
-            Begun::Walk(mut walk) => {
-                let cell = loop {
-                    if let Some(cell) = self.resume(&mut walk, &mut stack, &mut fault) {
-                        break cell;
-                    }
-                };
+            Begun::Walk(walk) => {
+                let cell = self.descend(&walk, 0, Vec3A::ZERO, 0, &mut stack, &mut fault);
                 self.finish(&walk.ray(), cell, &stack, fault)
             }
         }
@@ -547,20 +557,53 @@ impl<'a> Tracer<'a> {
 
     /// Traces every ray on the calling thread: hit `i` answers ray `i` (when
     /// the lengths differ only the common prefix is traced). The answers are
-    /// those of [`Tracer::trace`]; it is faster than calling it for each ray
-    /// because it keeps several rays in flight and switches between them at
-    /// every read of the DAG, so that the memory latency of one ray's reads is
-    /// spent advancing the others. Fails with the first error met.
+    /// those of [`Tracer::trace`] (up to the choice among tied cells where a
+    /// ray of a packet passes exactly through a shared edge or corner, see
+    /// below). It is faster than calling it for each ray because it keeps
+    /// several rays in flight and switches between them at every read of the
+    /// DAG, so that the memory latency of one ray's reads is spent advancing
+    /// the others; and because runs of up to 64 consecutive rays with the same
+    /// origin, bounds and level and directions in one octant (primary rays,
+    /// best in tiles: [`crate::camera::CameraFrame::rays_in_tiles`]) are
+    /// traced as packets, sharing one walk of the coarse levels. Fails with
+    /// the first error met.
     pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
         let count = rays.len().min(hits.len());
+        // Runs of coherent rays go as packets (see `packet`), the rest
+        // through the interleaved lanes.
+        let mut i = 0;
+        let mut run = 0;
+        while i < count {
+            let n = self.packet_len(&rays[i..count]);
+            if n == 0 {
+                i += 1;
+                continue;
+            }
+            self.trace_lanes(&rays[run..i], &mut hits[run..i])?;
+            if !self.try_packet(&rays[i..i + n], &mut hits[i..i + n]) {
+                self.trace_lanes(&rays[i..i + n], &mut hits[i..i + n])?;
+            }
+            i += n;
+            run = i;
+        }
+        self.trace_lanes(&rays[run..count], &mut hits[run..count])
+    }
+
+    /// [`Tracer::trace_sequential_into`] without packets: several rays in
+    /// flight, switching between them at every read of the DAG.
+    pub(crate) fn trace_lanes(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
+        let count = rays.len().min(hits.len());
+        // The lanes never move (a lane is 400 bytes); `order[..active]` lists
+        // the busy ones and `order[active..]` the free ones.
         let mut lanes = [Lane::default(); LANES];
+        let mut order: [usize; LANES] = std::array::from_fn(|i| i);
         let mut active = 0;
         let mut next = 0;
         loop {
             // Fill the free lanes with rays that need a traversal; the others
             // are answered on the spot.
             while active < LANES && next < count {
-                let lane = &mut lanes[active];
+                let lane = &mut lanes[order[active] & (LANES - 1)];
                 let mut fault = None;
                 match self.begin(&rays[next], &mut lane.stack, &mut fault)? {
                     Begun::Done(hit) => hits[next] = hit,
@@ -576,10 +619,10 @@ impl<'a> Tracer<'a> {
                 return Ok(());
             }
             // One step of every lane, in turn; a finished lane is answered and
-            // replaced by the last one.
+            // its slot freed.
             let mut k = 0;
             while k < active {
-                let lane = &mut lanes[k];
+                let lane = &mut lanes[order[k] & (LANES - 1)];
                 let mut fault = None;
                 match self.resume(&mut lane.walk, &mut lane.stack, &mut fault) {
                     None if fault.is_none() => k += 1,
@@ -587,7 +630,7 @@ impl<'a> Tracer<'a> {
                         let cell = cell.flatten();
                         hits[lane.ray] = self.finish(&lane.walk.ray(), cell, &lane.stack, fault)?;
                         active -= 1;
-                        lanes.swap(k, active);
+                        order.swap(k, active);
                     }
                 }
             }
@@ -597,7 +640,7 @@ impl<'a> Tracer<'a> {
     /// Set-up of a ray: its answer when that needs no traversal of the nodes,
     /// or its walk from the root.
     #[inline(always)]
-    fn begin(
+    pub(crate) fn begin(
         &self,
         ray: &Ray,
         stack: &mut Stack,
@@ -635,7 +678,7 @@ impl<'a> Tracer<'a> {
     /// The hit for the first occupied cell found by the traversal of `p`
     /// (whose path is in `stack`), or the fault met on the way.
     #[inline(always)]
-    fn finish(
+    pub(crate) fn finish(
         &self,
         p: &Prepared,
         cell: Option<Cell>,
@@ -861,11 +904,7 @@ impl<'a> Tracer<'a> {
     ) -> Option<(Found, f32, u8)> {
         let cell = match self.start(p, fault) {
             Err(done) => done,
-            Ok(mut walk) => loop {
-                if let Some(done) = self.resume(&mut walk, stack, fault) {
-                    break done;
-                }
-            },
+            Ok(walk) => self.descend(&walk, 0, Vec3A::ZERO, 0, stack, fault),
         };
         cell.map(|(pos, level, leaf)| self.found(p, pos, level, leaf))
     }
@@ -911,12 +950,17 @@ impl<'a> Tracer<'a> {
             // The level where the descent stops: the ray's level, or the leaf
             // level whose bricks are answered from their masks.
             stop: p.level.min(leaf_level),
+            top: 0,
             level: 0,
             pending: Pending::Node,
             pos: Vec3A::ZERO,
             size: root_size,
             target: 0,
             brick_pos: Vec3A::ZERO,
+            word: 0,
+            mask: 0,
+            remaining: 0,
+            last: 0,
         })
     }
 
@@ -925,97 +969,233 @@ impl<'a> Tracer<'a> {
     /// later. `Some` when the walk is over: the first occupied cell, or `None`
     /// when there is none.
     #[inline(always)]
-    fn resume(
+    pub(crate) fn resume(
         &self,
         walk: &mut Walk,
         stack: &mut Stack,
         fault: &mut Option<Fault>,
     ) -> Option<Option<Cell>> {
         let q = &walk.q;
-        let neg = q.neg;
+        let neg = q.neg & 7;
         let (origin, inv_dir) = (q.origin, q.inv_dir);
         let stop = walk.stop;
         let mut level = walk.level;
         let mut pos = walk.pos;
         let mut size = walk.size;
-        match walk.pending {
-            Pending::Node => {
-                let l = usize::from(level) & LEVEL_INDEX;
-                let word = walk.target;
-                let header = self.levels[l].header_or_fault(level, word, fault);
-                let t_lo = (pos - origin) * inv_dir;
-                let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
-                let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
-                let t_enter = max(t_lo.max_element(), q.tmin);
-                let t_exit = min(t_hi.min_element(), q.tmax);
-                let mask = header as u8;
-                let remaining = if t_enter <= t_exit {
-                    chain(neg, t_enter, t_exit, t_mid) & mask
-                } else {
-                    0
+        let (mut word, mut mask, mut remaining);
+        if walk.pending == Pending::Node {
+            // Visit the node: the children the ray passes through.
+            word = walk.target;
+            let header =
+                self.levels[usize::from(level) & LEVEL_INDEX].header_or_fault(level, word, fault);
+            let t_lo = (pos - origin) * inv_dir;
+            let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
+            let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
+            let t_enter = max(t_lo.max_element(), q.tmin);
+            let t_exit = min(t_hi.min_element(), q.tmax);
+            mask = header as u8;
+            remaining = if t_enter <= t_exit {
+                chain(neg, t_enter, t_exit, t_mid) & mask
+            } else {
+                0
+            };
+        } else {
+            let leaf = walk.target;
+            word = walk.word;
+            mask = walk.mask;
+            remaining = walk.remaining;
+            if let Some((cell, cell_level)) = self.brick(q, leaf, walk.brick_pos, fault) {
+                stack[usize::from(level) & LEVEL_INDEX] = Frame {
+                    word,
+                    mask,
+                    remaining,
+                    last: walk.last,
+                    _pad: 0,
                 };
+                return Some(Some((cell, cell_level, leaf)));
+            }
+        }
+        while remaining == 0 {
+            if level == walk.top {
+                return Some(None);
+            }
+            // Back to the parent: undo the step into this node.
+            level -= 1;
+            let parent = stack[usize::from(level) & LEVEL_INDEX];
+            pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
+            size *= 2.0;
+            word = parent.word;
+            mask = parent.mask;
+            remaining = parent.remaining;
+        }
+        let child = FIRST[neg][usize::from(remaining)];
+        remaining &= !(1 << child);
+        let rank = u32::from(POPCOUNT8[usize::from(mask & ((1u8 << child) - 1))]);
+        let l = usize::from(level) & LEVEL_INDEX;
+        let pointer = self.levels[l].pointer_or_fault(level, word, rank, fault);
+        let half = size * 0.5;
+        let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
+        let child_level = level + 1;
+        if child_level == stop {
+            if stop == q.level {
                 stack[l] = Frame {
                     word,
                     mask,
                     remaining,
-                    last: 0,
+                    last: child,
                     _pad: 0,
                 };
+                return Some(Some((child_pos, child_level, pointer)));
             }
-            Pending::Brick => {
-                let leaf = walk.target;
-                if let Some((cell, cell_level)) = self.brick(q, leaf, walk.brick_pos, fault) {
-                    return Some(Some((cell, cell_level, leaf)));
-                }
-            }
-        }
-        loop {
-            let frame = &mut stack[usize::from(level) & LEVEL_INDEX];
-            if frame.remaining == 0 {
-                if level == 0 {
-                    return Some(None);
-                }
-                // Back to the parent: undo the step into this node.
-                level -= 1;
-                let parent = stack[usize::from(level) & LEVEL_INDEX];
-                pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
-                size *= 2.0;
-                continue;
-            }
-            let child = FIRST[neg][usize::from(frame.remaining)];
-            frame.remaining &= !(1 << child);
-            frame.last = child;
-            let rank = u32::from(POPCOUNT8[usize::from(frame.mask & ((1u8 << child) - 1))]);
-            let pointer = self.levels[usize::from(level) & LEVEL_INDEX]
-                .pointer_or_fault(level, frame.word, rank, fault);
-            let half = size * 0.5;
-            let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
-            let child_level = level + 1;
-            if child_level == stop {
-                if stop == q.level {
-                    return Some(Some((child_pos, child_level, pointer)));
-                }
-                // The brick is read on resumption; the walk stays at its parent.
-                let leaf_level = usize::from(self.leaf_level) & LEVEL_INDEX;
-                prefetch(self.levels[leaf_level].bytes, pointer as usize * 8);
-                walk.pending = Pending::Brick;
-                walk.target = pointer;
-                walk.brick_pos = child_pos;
-                walk.level = level;
-                walk.pos = pos;
-                walk.size = size;
-                return None;
-            }
-            prefetch(
-                self.levels[usize::from(child_level) & LEVEL_INDEX].bytes,
-                pointer as usize * 4,
-            );
-            walk.pending = Pending::Node;
+            // The brick is read on resumption; the walk stays at its parent.
+            let leaf_level = usize::from(self.leaf_level) & LEVEL_INDEX;
+            prefetch(self.levels[leaf_level].bytes, pointer as usize * 8);
+            walk.pending = Pending::Brick;
             walk.target = pointer;
-            walk.level = child_level;
-            walk.pos = child_pos;
-            walk.size = half;
+            walk.brick_pos = child_pos;
+            walk.word = word;
+            walk.mask = mask;
+            walk.remaining = remaining;
+            walk.last = child;
+            walk.level = level;
+            walk.pos = pos;
+            walk.size = size;
             return None;
+        }
+        stack[l] = Frame {
+            word,
+            mask,
+            remaining,
+            last: child,
+            _pad: 0,
+        };
+        prefetch(
+            self.levels[usize::from(child_level) & LEVEL_INDEX].bytes,
+            pointer as usize * 4,
+        );
+        walk.pending = Pending::Node;
+        walk.target = pointer;
+        walk.level = child_level;
+        walk.pos = child_pos;
+        walk.size = half;
+        None
+    }
+
+    /// The front-to-back traversal of `walk`'s ray through the subtree of
+    /// node `word` of level `top` (lower corner at mirrored grid position
+    /// `top_pos`), in one loop: the steps of [`Tracer::resume`] without
+    /// suspending. Returns the first occupied cell found in that subtree;
+    /// `stack[top..]` then holds its path below `top`. With `top` = 0 and
+    /// the root, this is the whole traversal of [`Tracer::trace`].
+    #[inline(always)]
+    pub(crate) fn descend(
+        &self,
+        walk: &Walk,
+        top: u8,
+        top_pos: Vec3A,
+        top_word: u32,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Option<Cell> {
+        let q = &walk.q;
+        let neg = q.neg & 7;
+        let (origin, inv_dir) = (q.origin, q.inv_dir);
+        let plane = |p: Vec3A| (p - origin) * inv_dir;
+        let stop = walk.stop;
+        let mut level = top;
+        let mut pos = top_pos;
+        let mut size = self.cell_size[usize::from(top) & 31];
+        let mut word = top_word;
+        // The slab parameters of the node's planes at 0, 1/4, 1/2, 3/4 and 1
+        // of its edge: a child's lower, middle and upper planes are three of
+        // its parent's, so only two are computed per step, and they are off
+        // the path from one node to the next.
+        let quarter = size * 0.25;
+        let mut t = [
+            plane(pos),
+            plane(pos + Vec3A::splat(quarter)),
+            plane(pos + Vec3A::splat(2.0 * quarter)),
+            plane(pos + Vec3A::splat(3.0 * quarter)),
+            plane(pos + Vec3A::splat(size)),
+        ];
+        loop {
+            // Visit the node `word` of `level`: the children the ray passes through.
+            let header =
+                self.levels[usize::from(level) & LEVEL_INDEX].header_or_fault(level, word, fault);
+            let t_enter = max(t[0].max_element(), q.tmin);
+            let t_exit = min(t[4].min_element(), q.tmax);
+            let mut mask = header as u8;
+            let mut remaining = if t_enter <= t_exit {
+                chain(neg, t_enter, t_exit, t[2]) & mask
+            } else {
+                0
+            };
+            loop {
+                if remaining == 0 {
+                    while remaining == 0 {
+                        if level == top {
+                            return None;
+                        }
+                        // Back to the parent: undo the step into this node.
+                        level -= 1;
+                        let parent = stack[usize::from(level) & LEVEL_INDEX];
+                        pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
+                        size *= 2.0;
+                        word = parent.word;
+                        mask = parent.mask;
+                        remaining = parent.remaining;
+                    }
+                    let quarter = size * 0.25;
+                    t = [
+                        plane(pos),
+                        plane(pos + Vec3A::splat(quarter)),
+                        plane(pos + Vec3A::splat(2.0 * quarter)),
+                        plane(pos + Vec3A::splat(3.0 * quarter)),
+                        plane(pos + Vec3A::splat(size)),
+                    ];
+                }
+                let child = FIRST[neg][usize::from(remaining)];
+                remaining &= !(1 << child);
+                let rank = u32::from(POPCOUNT8[usize::from(mask & ((1u8 << child) - 1))]);
+                let l = usize::from(level) & LEVEL_INDEX;
+                let pointer = self.levels[l].pointer_or_fault(level, word, rank, fault);
+                let m = (usize::from(child) ^ neg) & 7;
+                let half = size * 0.5;
+                let child_pos = pos + CHILD_STEPS[m] * half;
+                let upper = UPPER[m];
+                let c0 = Vec3A::select(upper, t[2], t[0]);
+                let c2 = Vec3A::select(upper, t[3], t[1]);
+                let c4 = Vec3A::select(upper, t[4], t[2]);
+                stack[l] = Frame {
+                    word,
+                    mask,
+                    remaining,
+                    last: child,
+                    _pad: 0,
+                };
+                let child_level = level + 1;
+                let eighth = half * 0.25;
+                let c1 = plane(child_pos + Vec3A::splat(eighth));
+                let c3 = plane(child_pos + Vec3A::splat(3.0 * eighth));
+                if child_level == stop {
+                    if stop == q.level {
+                        return Some((child_pos, child_level, pointer));
+                    }
+                    let planes = [c0, c1, c2, c3, c4];
+                    if let Some((cell, cell_level)) =
+                        self.brick_planes(q, pointer, child_pos, &planes, fault)
+                    {
+                        return Some((cell, cell_level, pointer));
+                    }
+                    continue;
+                }
+                t = [c0, c1, c2, c3, c4];
+                level = child_level;
+                word = pointer;
+                pos = child_pos;
+                size = half;
+                break;
+            }
         }
     }
 
@@ -1068,17 +1248,29 @@ impl<'a> Tracer<'a> {
         pos: Vec3A,
         fault: &mut Option<Fault>,
     ) -> Option<(Vec3A, u8)> {
+        let planes =
+            [0.0f32, 1.0, 2.0, 3.0, 4.0].map(|k| (pos + Vec3A::splat(k) - p.origin) * p.inv_dir);
+        self.brick_planes(p, leaf, pos, &planes, fault)
+    }
+
+    /// [`Tracer::brick`] given the slab parameters of the brick's planes at
+    /// offsets 0 to 4.
+    #[inline(always)]
+    fn brick_planes(
+        &self,
+        p: &Prepared,
+        leaf: u32,
+        pos: Vec3A,
+        planes: &[Vec3A; 5],
+        fault: &mut Option<Fault>,
+    ) -> Option<(Vec3A, u8)> {
         let bits = self.levels[usize::from(self.leaf_level) & LEVEL_INDEX].leaf_or_fault(
             self.leaf_level,
             leaf,
             fault,
         );
         let neg = p.neg;
-        let t0 = (pos - p.origin) * p.inv_dir;
-        let t1 = (pos + Vec3A::splat(1.0) - p.origin) * p.inv_dir;
-        let t2 = (pos + Vec3A::splat(2.0) - p.origin) * p.inv_dir;
-        let t3 = (pos + Vec3A::splat(3.0) - p.origin) * p.inv_dir;
-        let t4 = (pos + Vec3A::splat(4.0) - p.origin) * p.inv_dir;
+        let [t0, t1, t2, t3, t4] = *planes;
         let t_enter = max(t0.max_element(), p.tmin);
         let t_exit = min(t4.min_element(), p.tmax);
         if t_enter > t_exit {
@@ -1252,7 +1444,7 @@ fn chain(neg: usize, t_enter: f32, t_exit: f32, t_mid: Vec3A) -> u8 {
 /// Hints the processor to load the cache line holding `bytes[at]` (nothing
 /// when `at` is out of range).
 #[inline(always)]
-fn prefetch(bytes: &[u8], at: usize) {
+pub(crate) fn prefetch(bytes: &[u8], at: usize) {
     #[cfg(target_arch = "x86_64")]
     if at < bytes.len() {
         let address = bytes.as_ptr().wrapping_add(at);
@@ -1279,15 +1471,26 @@ fn sub_brick_mask(bits: u64) -> u8 {
 
 /// `a.max(b)` without NaN handling (the traversal has no NaN): one `maxss`.
 #[inline(always)]
-fn max(a: f32, b: f32) -> f32 {
+pub(crate) fn max(a: f32, b: f32) -> f32 {
     if a > b { a } else { b }
 }
 
 /// `a.min(b)` without NaN handling: one `minss`.
 #[inline(always)]
-fn min(a: f32, b: f32) -> f32 {
+pub(crate) fn min(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
 }
+
+/// Per child index: the axes in which the child is the upper half.
+const UPPER: [BVec3A; 8] = {
+    let mut t = [BVec3A::FALSE; 8];
+    let mut c = 0;
+    while c < 8 {
+        t[c] = BVec3A::new(c & 1 != 0, c & 2 != 0, c & 4 != 0);
+        c += 1;
+    }
+    t
+};
 
 /// Unit steps to the eight children, by child index (x, y, z = bits 0, 1, 2).
 const CHILD_STEPS: [Vec3A; 8] = {

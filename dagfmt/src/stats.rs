@@ -66,6 +66,16 @@ pub struct DagStats {
     pub classic_svdag_bytes: u128,
     /// The equivalent sparse voxel octree in the same 32-bit layout (no deduplication).
     pub svo_bytes: u128,
+    /// Per interior level (root first): the zero-order entropy, in bits
+    /// (rounded up), of the level's pointers, i.e. of which node of the next
+    /// level each of them names, by how often each is named.
+    pub pointer_entropy_bits: Vec<u64>,
+    /// A lower bound for any layout of this DAG that keeps a 32-bit header
+    /// per interior node and a 64-bit mask per leaf and codes each pointer on
+    /// its own (any code per level, variable-length, even without byte
+    /// alignment or random access): headers + leaves + the pointer entropy.
+    /// It shows how much pointer coding alone could still gain.
+    pub pointer_entropy_bound_bytes: u128,
 }
 
 impl DagStats {
@@ -123,7 +133,12 @@ impl fmt::Display for DagStats {
             "classic SVDAG:      {:>22} bytes",
             self.classic_svdag_bytes
         )?;
-        write!(f, "SVO (no dedup):     {:>22} bytes", self.svo_bytes)
+        writeln!(f, "SVO (no dedup):     {:>22} bytes", self.svo_bytes)?;
+        write!(
+            f,
+            "pointer entropy bound: {:>19} bytes",
+            self.pointer_entropy_bound_bytes
+        )
     }
 }
 
@@ -192,6 +207,8 @@ pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
     let mut levels = Vec::with_capacity(sections.len());
     let mut classic = 0u128;
     let mut svo = 0u128;
+    let mut entropy_bits = Vec::with_capacity(leaf_level);
+    let mut headers = 0u128;
     // How many times each node of the current level occurs in the tree.
     let mut multiplicity: Vec<u64> = if dag.is_empty() { Vec::new() } else { vec![1] };
     let mut starts = if leaf_level > 0 {
@@ -222,9 +239,12 @@ pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
             (child_starts, count, map)
         };
         let mut next = vec![0u64; child_count as usize];
+        // How many pointers of this level name each node of the next.
+        let mut named = vec![0u32; child_count as usize];
         for (index, (&word, &m)) in starts.iter().zip(&multiplicity).enumerate() {
             let node = dag.node(level as u8, word)?;
             let record = 4 + 4 * u128::from(node.child_count());
+            headers += 4;
             classic += record;
             svo += record * u128::from(m);
             for rank in 0..node.child_count() {
@@ -260,8 +280,10 @@ pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
                     .at_node(index as u64));
                 };
                 next[target] = next[target].saturating_add(m);
+                named[target] = named[target].saturating_add(1);
             }
         }
+        entropy_bits.push(entropy_bits_of(&named));
         let section = &sections[level];
         levels.push(LevelStats {
             level: level as u8,
@@ -296,6 +318,9 @@ pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
         tree_nodes: tree_leaves,
     });
     let header = dag.header();
+    let pointer_bits: u128 = entropy_bits.iter().map(|&b| u128::from(b)).sum();
+    let pointer_entropy_bound_bytes =
+        headers + 8 * u128::from(leaves.node_count) + pointer_bits.div_ceil(8);
     Ok(DagStats {
         depth: header.depth,
         attribute_kind: header.attribute_kind,
@@ -306,6 +331,23 @@ pub fn analyze(dag: &Dag<'_>) -> Result<DagStats, FormatError> {
         tree_nodes: levels.iter().map(|l| l.tree_nodes).sum(),
         classic_svdag_bytes: classic,
         svo_bytes: svo,
+        pointer_entropy_bits: entropy_bits,
+        pointer_entropy_bound_bytes,
         levels,
     })
+}
+
+/// Total zero-order entropy, in bits rounded up, of a sequence of symbols
+/// that holds symbol `i` `counts[i]` times: `sum(n_i * log2(N / n_i))`.
+fn entropy_bits_of(counts: &[u32]) -> u64 {
+    let total: f64 = counts.iter().map(|&c| f64::from(c)).sum();
+    if total == 0.0 {
+        return 0;
+    }
+    let bits: f64 = counts
+        .iter()
+        .filter(|&&c| c > 0)
+        .map(|&c| f64::from(c) * (total / f64::from(c)).log2())
+        .sum();
+    bits.ceil() as u64
 }

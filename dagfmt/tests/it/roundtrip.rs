@@ -598,6 +598,10 @@ fn stats_of_a_full_depth_4_volume() {
     assert_eq!(s.dag_nodes, 3);
     assert_eq!(s.tree_nodes, 73);
     assert!(s.to_string().contains("836"));
+    // Every pointer of a level names the one node of the next: no entropy,
+    // so the bound is the headers and the leaf alone.
+    assert_eq!(s.pointer_entropy_bits, vec![0, 0]);
+    assert_eq!(s.pointer_entropy_bound_bytes, 4 + 4 + 8);
 }
 
 #[test]
@@ -611,6 +615,43 @@ fn stats_of_two_far_corners() {
     assert_eq!(s.svo_bytes, 60);
     assert_eq!(s.dag_nodes, 7);
     assert_eq!(s.tree_nodes, 7);
+    // The root's two pointers name two nodes once each: 1 bit each; the
+    // lower levels' single pointers name one of two nodes once each: 2 bits
+    // per level. Headers 5 * 4, leaves 2 * 8, pointers ceil(6 / 8) = 1 byte.
+    assert_eq!(s.pointer_entropy_bits, vec![2, 2, 2]);
+    assert_eq!(s.pointer_entropy_bound_bytes, 20 + 16 + 1);
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// The pointer entropy bound never exceeds the file's own level sections
+    /// (fixed-width pointers are one way of coding each pointer on its own) nor
+    /// the classic layout, and it is at least the headers and the leaves.
+    #[test]
+    fn pointer_entropy_bound_is_below_the_file(depth in 3u8..=7, count in 1usize..400, seed in any::<u64>()) {
+        let mut state = seed;
+        let mut next = || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        };
+        let n = 1u64 << depth;
+        let voxels: Vec<[u32; 3]> = (0..count)
+            .map(|_| [0; 3].map(|_| (next() % n) as u32))
+            .collect();
+        let built = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, voxels).unwrap();
+        let bytes = built.to_bytes();
+        let s = stats::analyze(&Dag::open(&bytes).unwrap()).unwrap();
+        let interior: u64 = s.levels[..s.levels.len() - 1].iter().map(|l| l.node_count).sum();
+        let leaves = s.levels.last().unwrap().node_count;
+        prop_assert!(s.pointer_entropy_bound_bytes <= u128::from(s.level_bytes));
+        prop_assert!(s.pointer_entropy_bound_bytes <= s.classic_svdag_bytes);
+        prop_assert!(s.pointer_entropy_bound_bytes >= u128::from(4 * interior + 8 * leaves));
+        prop_assert_eq!(s.pointer_entropy_bits.len(), s.levels.len() - 1);
+    }
 }
 
 #[test]

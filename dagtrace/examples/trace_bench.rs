@@ -8,6 +8,10 @@
 //!     dragon10.vdag dragon12.vdag dragon14.vdag --mesh ../shared/meshes/dragon.obj
 //! ```
 //!
+//! Ray sets: `camera` (primary rays row by row), `tiles` (the same rays in
+//! 8x8 pixel tiles, the order `dagtrace render` uses, in which the batch API
+//! traces them as packets) and `random`.
+//!
 //! Measured per file and ray set, `--runs` times each, the runs of the
 //! different tracers alternating so that a busy machine slows them alike:
 //! - `trace()`: [`Tracer::trace`] called ray by ray on one thread;
@@ -60,7 +64,7 @@ struct Args {
     /// Camera image height.
     #[arg(long, default_value_t = 1080)]
     height: u32,
-    /// Only the ray sets whose name starts with this (`camera`, `random`).
+    /// Only the ray sets whose name starts with this (`camera`, `tiles`, `random`).
     #[arg(long)]
     only: Option<String>,
     /// Also compute the attribute index of every hit.
@@ -275,6 +279,12 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
         (
             format!("camera {}x{}", args.width, args.height),
             camera.rays(args.width, args.height, None),
+        ),
+        (
+            // The same rays in 8x8 pixel tiles, as `dagtrace render` traces
+            // them (both tracers get this order).
+            format!("tiles {}x{}", args.width, args.height),
+            camera.rays_in_tiles(args.width, args.height, None).0,
         ),
         (
             format!("random {}", args.random),

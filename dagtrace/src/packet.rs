@@ -18,7 +18,9 @@
 //!
 //! 1. A packet is a run of consecutive rays with the same origin, `tmin`,
 //!    `tmax` and level of detail, whose direction components all have the
-//!    same signs and none is (treated as) zero (see [`Tracer::packet_len`]).
+//!    same signs and none is (treated as) zero, and whose directions spread
+//!    so little that the beam stays at most [`BEAM_WIDTH_CELLS`] cells of the
+//!    beam level wide across the cube (see [`Tracer::packet_len`]).
 //! 2. The *beam* of the packet is the set of lines from the common origin
 //!    whose inverse direction lies, per axis, between the smallest and the
 //!    largest of the packet's. A cell can be met by a ray of the packet only
@@ -57,6 +59,10 @@ pub(crate) const PACKET_RAYS: usize = 64;
 
 /// Fewest rays worth a beam pass.
 const MIN_PACKET_RAYS: usize = 8;
+
+/// Widest beam, in cells of the beam level (at the far side of the cube),
+/// for which a packet beats tracing its rays one by one.
+const BEAM_WIDTH_CELLS: f64 = 16.0;
 
 /// Cells of the beam level listed at a time before the rays are traced
 /// through them.
@@ -189,12 +195,38 @@ impl Tracer<'_> {
         {
             return 0;
         }
+        // The beam must stay narrow: where it is many cells of the beam level
+        // wide, every ray would be tested against all of them. Its width at
+        // the far side of the cube is at most the spread of the directions
+        // (the chord between unit directions, about the angle) times the
+        // distance to the cube's farthest corner.
+        let resolution = f64::from(self.cell_size[0]);
+        let origin: [f64; 3] =
+            [0, 1, 2].map(|a| (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale);
+        let far = origin
+            .iter()
+            .map(|&o| o.abs().max((resolution - o).abs()))
+            .map(|d| d * d)
+            .sum::<f64>()
+            .sqrt();
+        let cell = f64::from(self.cell_size[usize::from(self.beam_level())]);
+        let max_spread = (BEAM_WIDTH_CELLS * cell / far.max(cell)) as f32;
+        let unit = |d: [f32; 3]| {
+            let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            d.map(|c| c / length)
+        };
+        let axis = unit(first.dir);
         let same = |r: &Ray| {
+            let u = unit(r.dir);
+            let chord =
+                ((u[0] - axis[0]).powi(2) + (u[1] - axis[1]).powi(2) + (u[2] - axis[2]).powi(2))
+                    .sqrt();
             r.origin.map(f32::to_bits) == first.origin.map(f32::to_bits)
                 && r.tmin.to_bits() == first.tmin.to_bits()
                 && r.tmax.to_bits() == first.tmax.to_bits()
                 && r.level == first.level
                 && signs(r) == Some(octant)
+                && chord <= max_spread
         };
         let n = rays
             .iter()

@@ -157,6 +157,8 @@ pub struct ConvertSummary {
     pub tmp_dir: PathBuf,
     /// Bytes written to temporary files (DAG runs, merge, colours).
     pub temp_bytes: u64,
+    /// The most bytes the temporary files held at once.
+    pub temp_peak_bytes: u64,
     /// Whether the colours went through a temporary file.
     pub colors_spilled: bool,
     /// CPU seconds of the whole process.
@@ -246,10 +248,11 @@ impl ConvertSummary {
         if self.temp_bytes > 0 {
             let _ = writeln!(
                 s,
-                "temp:     {} ({} bytes) written to unnamed temporary files in {}{}",
+                "temp:     {} ({} bytes) written to unnamed temporary files in {}, at most {} at once{}",
                 human_bytes(self.temp_bytes),
                 self.temp_bytes,
                 self.tmp_dir.display(),
+                human_bytes(self.temp_peak_bytes),
                 if self.colors_spilled {
                     " (colours included)"
                 } else {
@@ -380,6 +383,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     summary.memory_limit = limit;
     summary.tmp_dir = tmp_dir;
     summary.temp_bytes = scratch.bytes_written();
+    summary.temp_peak_bytes = scratch.peak_bytes();
     summary.total_seconds = start.elapsed().as_secs_f64();
     summary.peak_rss = peak_rss();
     summary.cpu_seconds = process_cpu_seconds();

@@ -87,7 +87,15 @@ fn build_error(e: BuildError) -> ConvertError {
 #[derive(Clone, Debug)]
 pub struct Scratch {
     dir: PathBuf,
-    written: Arc<AtomicU64>,
+    usage: Arc<Usage>,
+}
+
+/// Bytes written to temporary files: in all, held now, and held at most.
+#[derive(Debug, Default)]
+struct Usage {
+    written: AtomicU64,
+    held: AtomicU64,
+    peak: AtomicU64,
 }
 
 impl Scratch {
@@ -117,7 +125,7 @@ impl Scratch {
         }
         let scratch = Scratch {
             dir: dir.to_path_buf(),
-            written: Arc::new(AtomicU64::new(0)),
+            usage: Arc::new(Usage::default()),
         };
         // Makes (and at once forgets) one unnamed file, so that an unwritable
         // directory is an error now rather than after the voxelization.
@@ -137,7 +145,13 @@ impl Scratch {
 
     /// Bytes written to temporary files so far.
     pub fn bytes_written(&self) -> u64 {
-        self.written.load(Ordering::Relaxed)
+        self.usage.written.load(Ordering::Relaxed)
+    }
+
+    /// The most bytes the temporary files held at once (the disk space they
+    /// needed).
+    pub fn peak_bytes(&self) -> u64 {
+        self.usage.peak.load(Ordering::Relaxed)
     }
 
     /// A new unnamed temporary file: it has no name, so it disappears with
@@ -154,30 +168,43 @@ impl Scratch {
         )
     }
 
-    fn writer(&self) -> io::Result<Counted> {
-        Ok(Counted {
+    fn writer(&self) -> io::Result<TempFile> {
+        Ok(TempFile {
             file: self.file()?,
-            written: Arc::clone(&self.written),
+            bytes: 0,
+            usage: Arc::clone(&self.usage),
         })
     }
 }
 
-/// A temporary file that counts what is written to it.
+/// An unnamed temporary file that counts what is written to it; its bytes
+/// stop counting as held when it is dropped (and the system frees them).
 #[derive(Debug)]
-struct Counted {
+struct TempFile {
     file: File,
-    written: Arc<AtomicU64>,
+    bytes: u64,
+    usage: Arc<Usage>,
 }
 
-impl Write for Counted {
+impl Write for TempFile {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
         let n = self.file.write(buf)?;
-        self.written.fetch_add(n as u64, Ordering::Relaxed);
+        let u = &self.usage;
+        self.bytes += n as u64;
+        u.written.fetch_add(n as u64, Ordering::Relaxed);
+        let held = u.held.fetch_add(n as u64, Ordering::Relaxed) + n as u64;
+        u.peak.fetch_max(held, Ordering::Relaxed);
         Ok(n)
     }
 
     fn flush(&mut self) -> io::Result<()> {
         self.file.flush()
+    }
+}
+
+impl Drop for TempFile {
+    fn drop(&mut self) {
+        self.usage.held.fetch_sub(self.bytes, Ordering::Relaxed);
     }
 }
 
@@ -214,7 +241,7 @@ fn corrupt(what: &str) -> io::Error {
 /// A sequential writer of 32-bit words to a temporary file.
 #[derive(Debug)]
 struct WordFile {
-    out: Counted,
+    out: TempFile,
     buf: Vec<u32>,
     cap: usize,
     words: u64,
@@ -256,7 +283,7 @@ impl WordFile {
     fn finish(mut self) -> io::Result<WordData> {
         self.flush()?;
         Ok(WordData {
-            file: self.out.file,
+            file: self.out,
             words: self.words,
         })
     }
@@ -265,14 +292,14 @@ impl WordFile {
 /// Words written by a [`WordFile`].
 #[derive(Debug)]
 struct WordData {
-    file: File,
+    file: TempFile,
     words: u64,
 }
 
 impl WordData {
     fn reader(&self, cap: usize) -> WordReader<'_> {
         WordReader {
-            source: Source::Plain(&self.file),
+            source: Source::Plain(&self.file.file),
             pos: 0,
             end: self.words,
             buf: Vec::new(),
@@ -287,7 +314,7 @@ impl WordData {
 /// the last block of a stream may be short.
 #[derive(Debug)]
 struct StreamWriter {
-    out: Counted,
+    out: TempFile,
     block: usize,
     bufs: Vec<Vec<u32>>,
     blocks: Vec<Vec<u64>>,
@@ -347,7 +374,7 @@ impl StreamWriter {
             self.close(s)?;
         }
         Ok(Streams {
-            file: self.out.file,
+            file: self.out,
             block: self.block as u64,
             blocks: self.blocks,
             lens: self.lens,
@@ -358,7 +385,7 @@ impl StreamWriter {
 /// The streams of a [`StreamWriter`], for reading.
 #[derive(Debug)]
 struct Streams {
-    file: File,
+    file: TempFile,
     block: u64,
     blocks: Vec<Vec<u64>>,
     lens: Vec<u64>,
@@ -381,7 +408,7 @@ impl Streams {
             let take = ((self.block - within) as usize).min(out.len() - done);
             let at = self.blocks[stream][i] + within;
             read_exact_at(
-                &self.file,
+                &self.file.file,
                 bytemuck::cast_slice_mut(&mut out[done..done + take]),
                 at * 4,
             )?;
@@ -459,31 +486,40 @@ impl WordReader<'_> {
     }
 }
 
+/// Hands the first `length` bytes of `file` to `sink`.
+fn emit_file(
+    file: &File,
+    length: u64,
+    sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+) -> io::Result<()> {
+    let mut buf = vec![0u8; 1 << 20];
+    let mut at = 0u64;
+    while at < length {
+        let n = (length - at).min(buf.len() as u64) as usize;
+        read_exact_at(file, &mut buf[..n], at)?;
+        sink(&buf[..n])?;
+        at += n as u64;
+    }
+    Ok(())
+}
+
 /// The bytes of one section, written to a temporary file with their CRC-32C.
 #[derive(Debug)]
 struct SectionFile {
-    file: File,
+    file: TempFile,
     info: SectionInfo,
 }
 
 impl SectionFile {
     /// Hands the section's bytes to `sink`.
     fn emit(&self, sink: &mut dyn FnMut(&[u8]) -> io::Result<()>) -> io::Result<()> {
-        let mut buf = vec![0u8; 1 << 20];
-        let mut at = 0u64;
-        while at < self.info.length {
-            let n = (self.info.length - at).min(buf.len() as u64) as usize;
-            read_exact_at(&self.file, &mut buf[..n], at)?;
-            sink(&buf[..n])?;
-            at += n as u64;
-        }
-        Ok(())
+        emit_file(&self.file.file, self.info.length, sink)
     }
 }
 
 #[derive(Debug)]
 struct SectionWriter {
-    out: BufWriter<Counted>,
+    out: BufWriter<TempFile>,
     length: u64,
     crc: u32,
 }
@@ -503,9 +539,9 @@ impl SectionWriter {
         self.out.write_all(bytes)
     }
 
-    fn finish(self) -> io::Result<(File, u64, u32)> {
-        let counted = self.out.into_inner().map_err(|e| e.into_error())?;
-        Ok((counted.file, self.length, self.crc))
+    fn finish(self) -> io::Result<(TempFile, u64, u32)> {
+        let file = self.out.into_inner().map_err(|e| e.into_error())?;
+        Ok((file, self.length, self.crc))
     }
 }
 
@@ -519,7 +555,7 @@ pub struct ColourSink {
     scratch: Scratch,
     cap: usize,
     mem: Vec<u8>,
-    file: Option<BufWriter<Counted>>,
+    file: Option<BufWriter<TempFile>>,
     count: u64,
     crc: u32,
 }
@@ -567,10 +603,10 @@ impl ColourSink {
         let data = match self.file {
             None => ColourData::Memory(self.mem),
             Some(file) => {
-                let counted = file
+                let file = file
                     .into_inner()
                     .map_err(|e| self.scratch.error(e.into_error()))?;
-                ColourData::File(counted.file)
+                ColourData::File(file)
             }
         };
         Ok(Colours {
@@ -584,7 +620,7 @@ impl ColourSink {
 #[derive(Debug)]
 enum ColourData {
     Memory(Vec<u8>),
-    File(File),
+    File(TempFile),
 }
 
 /// Colours gathered by a [`ColourSink`].
@@ -615,11 +651,7 @@ impl Colours {
                 }
                 Ok(())
             }
-            ColourData::File(file) => SectionFile {
-                file: file.try_clone()?,
-                info: self.section(),
-            }
-            .emit(sink),
+            ColourData::File(file) => emit_file(&file.file, self.count * 4, sink),
         }
     }
 }

@@ -11,7 +11,7 @@
 # - dragon16: dragon.obj at depth 16, once: wall time, peak RSS.
 # - solid14:  dragon.obj at depth 14 with --solid, once: wall time, peak RSS.
 # - ooc14:    dragon.obj at depth 14 in memory and under --memory-limit LIMITS14 (default
-#             "512M 256M"), RUNS runs each, interleaved: medians of wall time, user CPU and peak
+#             "1G 512M 256M"), RUNS runs each, interleaved: medians of wall time, user CPU and peak
 #             RSS, runs spilled, bytes written to temporary files; every file validates and is
 #             byte-identical to the in-memory one, with the same `dagtool info --json` levels.
 # - ooc16:    dragon.obj at depth 16 in memory and under --memory-limit LIMITS16 (default
@@ -29,7 +29,7 @@ ROOT=$(pwd)
 MESHES=${MESHES:-$ROOT/../shared/meshes}
 RUNS=${RUNS:-3}
 WHAT=${*:-dragon14 dragon16 solid14 ooc14 ooc16 vdb sizes}
-LIMITS14=${LIMITS14:-512M 256M}
+LIMITS14=${LIMITS14:-1G 512M 256M}
 LIMITS16=${LIMITS16:-2G 1G}
 if [ ! -d "$MESHES" ]; then
     echo "meshes not found at $MESHES (set MESHES)" >&2

@@ -881,7 +881,7 @@ impl DagSink {
             ..
         } = self;
         drop(builder);
-        let runs = runs
+        let (runs, levels) = runs
             .expect("spilled")
             .finish()
             .map_err(|e| scratch.error(e))?;
@@ -895,7 +895,7 @@ impl DagSink {
             forced_buckets: settings.buckets,
             runs: &runs,
         };
-        let (external, max_buckets) = merger.run()?;
+        let (external, max_buckets) = merger.run(levels)?;
         Ok(FinishedDag {
             inner: Inner::External(external),
             cells,
@@ -977,18 +977,21 @@ impl RunFiles {
         Ok(())
     }
 
-    fn finish(self) -> io::Result<SpilledRuns> {
-        Ok(SpilledRuns {
+    /// The runs, and their records of each level `split ..= leaf`, which
+    /// the merge consumes (and frees) one level at a time.
+    fn finish(self) -> io::Result<(SpilledRuns, Vec<WordData>)> {
+        let levels = self
+            .levels
+            .into_iter()
+            .map(WordFile::finish)
+            .collect::<io::Result<_>>()?;
+        let runs = SpilledRuns {
             split: self.split,
             leaf: self.leaf,
-            levels: self
-                .levels
-                .into_iter()
-                .map(WordFile::finish)
-                .collect::<io::Result<_>>()?,
             roots: self.roots.finish()?,
             runs: self.runs,
-        })
+        };
+        Ok((runs, levels))
     }
 }
 
@@ -996,7 +999,6 @@ impl RunFiles {
 struct SpilledRuns {
     split: u8,
     leaf: u8,
-    levels: Vec<WordData>,
     roots: WordData,
     runs: Vec<RunInfo>,
 }
@@ -1125,15 +1127,17 @@ impl Merger<'_> {
         self.scratch.error(e)
     }
 
-    /// Merges every level from the leaves up to the split level, then builds
-    /// the levels above.
-    fn run(&self) -> Result<(ExternalDag, u64), ConvertError> {
+    /// Merges every level from the leaves up to the split level (`levels`
+    /// holds the runs' records of each, split level first), then builds the
+    /// levels above.
+    fn run(&self, mut levels: Vec<WordData>) -> Result<(ExternalDag, u64), ConvertError> {
         let leaf = self.runs.leaf;
         let mut lower: Vec<SectionFile> = Vec::new();
         let mut below: Option<MergedLevel> = None;
         let mut max_buckets = 0;
         for level in (self.split..=leaf).rev() {
-            let merged = self.merge_level(level, below.as_ref())?;
+            let data = levels.pop().expect("one record file per level");
+            let merged = self.merge_level(level, data, below.as_ref())?;
             max_buckets = max_buckets.max(merged.buckets as u64);
             if let Some(b) = below.take() {
                 lower.push(b.section);
@@ -1201,15 +1205,17 @@ impl Merger<'_> {
         (k, block)
     }
 
+    /// Merges `level`, whose records are `data` (freed once read), given the
+    /// merge of the level below (none for the leaf level).
     fn merge_level(
         &self,
         level: u8,
+        data: WordData,
         below: Option<&MergedLevel>,
     ) -> Result<MergedLevel, ConvertError> {
         let io = |e| self.io(e);
         let runs = self.runs;
         let leaf = level == runs.leaf;
-        let data = &runs.levels[usize::from(level - runs.split)];
         let r_count = runs.runs.len();
         let records: u64 = (0..r_count).map(|r| runs.nodes(r, level)).sum();
         let (k, block) = self.buckets(records, data.words);
@@ -1257,6 +1263,8 @@ impl Merger<'_> {
             }
         }
         drop(reader);
+        // The runs' records of this level are in the buckets now.
+        drop(data);
         let buckets = buckets.finish().map_err(io)?;
 
         // Step 2: deduplicate each bucket; each distinct record keeps the

@@ -63,13 +63,12 @@ MEMORY, TEMPORARY FILES AND OUTPUT
   file is the same, byte for byte, as one built in memory, whatever the limit.
   The summary says how many runs were spilled, how many bytes were written to
   temporary files, and the peak resident memory.
-  Temporary files go to --tmp-dir (default: the output's directory; they need
+  Temporary files go to --tmp-dir (default: the output's directory); they need
   up to about three times the output's size, which the summary reports as the
-  most they held at once). They are unnamed (O_TMPFILE on
-  Linux): nothing is left behind on success, on error, or if the process is
-  killed. The output is written to a temporary file beside it, synced and
-  renamed: it is either complete or absent. An existing output is never
-  replaced without --force.";
+  most they held at once. They are unnamed (O_TMPFILE on Linux): nothing is left
+  behind on success, on error, or if the process is killed. The output is
+  written to a temporary file beside it, synced and renamed: it is either
+  complete or absent. An existing output is never replaced without --force.";
 
 #[derive(Parser, Debug)]
 #[command(

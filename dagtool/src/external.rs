@@ -45,9 +45,10 @@
 //! plus the next hash-table growth). The merge holds, at any time, one
 //! bucket (its records, a hash table sized for them, one offset per distinct
 //! record), or one run's map plus K block buffers, or K read buffers; K is
-//! chosen so that a bucket fits the merge budget. The levels above P hold one
-//! node per distinct level-P-and-above cell: as many as the chunks, which the
-//! triangle bins already hold.
+//! chosen so that a bucket fits the merge budget. The levels above P, built
+//! in memory, hold at most one node per occupied cell above level P: fewer
+//! than the occupied level-P cells (the chunks), which the triangle bins
+//! already hold.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;

@@ -437,12 +437,15 @@ fn plan_memory(
     };
     let needed = fixed + colour_cap + margin(limit) + MIN_RUN_BUDGET;
     if needed > limit {
+        let colours = if colors {
+            format!(", {} of colours", human_bytes(colour_cap))
+        } else {
+            String::new()
+        };
         return Err(ConvertError::Limit(format!(
-            "memory limit of {} is below the minimal working set of {} ({what}, {} of colours{}, {} for the DAG builder and a margin of {}); raise --memory-limit",
+            "memory limit of {} is below the minimal working set of {} ({what}{colours}, {} for the DAG builder and a margin of {}); raise --memory-limit",
             human_bytes(limit),
             human_bytes(needed),
-            human_bytes(colour_cap),
-            if colors { "" } else { " (none)" },
             human_bytes(MIN_RUN_BUDGET),
             human_bytes(margin(limit)),
         )));
@@ -540,7 +543,13 @@ fn convert_voxels(
     let t = Instant::now();
     let list = voxlist::read(&opts.input, opts.depth)?;
     check_memory(limit, "reading the voxel list")?;
-    let plan = plan_memory(limit, current_rss().unwrap_or(0), "the voxel list", false)?;
+    let resident = current_rss().unwrap_or(0);
+    let plan = plan_memory(
+        limit,
+        resident,
+        &format!("{} resident with the voxel list", human_bytes(resident)),
+        false,
+    )?;
     let mut summary = ConvertSummary {
         input: format!(
             "{}: voxel list, {} records, {} distinct voxels",

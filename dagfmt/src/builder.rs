@@ -28,6 +28,18 @@
 //! [`DagBuilder::distinct_nodes`] report the builder's footprint as it grows;
 //! [`BuiltDag::write_to`] streams the file without a whole-file buffer.
 //!
+//! When the distinct nodes themselves do not fit in memory, the build can be
+//! split into *runs* of complete subtrees rooted at a split level P: a builder
+//! that [records subtrees](DagBuilder::record_subtrees) hands out, at a cell
+//! boundary of level P, the distinct nodes of levels P ..= D − 2 with
+//! builder-local ids and the roots ([`DagBuilder::finish_subtrees`]); the
+//! caller stores them, starts a new builder for the next Morton range, and
+//! later deduplicates the runs' nodes level by level, bottom up, encoding the
+//! records with [`layout::encode_node_record`]. [`UpperBuilder`] then builds
+//! levels 0 .. P from the roots, and [`FileLayout`] writes the file from the
+//! sections' lengths and checksums. This module does no file I/O: `dagtool`'s
+//! converter does the storing and merging (`dagtool/src/external.rs`).
+//!
 //! Nodes are written in first-seen order (post-order of the Morton-order
 //! build); any order is valid.
 
@@ -36,9 +48,9 @@ use std::io::{self, Write};
 use hashbrown::HashTable;
 use thiserror::Error;
 
+use crate::assemble::{FileHeader, FileLayout, SectionInfo};
 use crate::layout::{
-    self, AttributeKind, HEADER_SIZE, MAGIC, MAX_DEPTH, MAX_FILE_SIZE, MAX_LEAF_COUNT,
-    MAX_NODE_LEVEL_BYTES, MIN_DEPTH, RawHeader, RawSectionEntry, SECTION_ENTRY_SIZE, SectionKind,
+    self, AttributeKind, MAX_DEPTH, MAX_LEAF_COUNT, MAX_NODE_LEVEL_BYTES, MIN_DEPTH,
 };
 use crate::morton;
 pub use crate::stats::LevelStats;
@@ -105,6 +117,13 @@ pub enum BuildError {
     #[error("too large: {what}")]
     TooLarge {
         /// Which limit, and by how much.
+        what: String,
+    },
+    /// The pieces given do not make a valid file (a section table that breaks
+    /// a rule of the format, a subtree without voxels, a bad split level).
+    #[error("{what}")]
+    Invalid {
+        /// What is wrong.
         what: String,
     },
 }
@@ -253,6 +272,9 @@ pub struct DagBuilder {
     /// Exclusive upper bound of brick codes: 8^(depth - 2).
     brick_limit: u64,
     voxel_count: u64,
+    /// The level whose completed nodes are recorded as subtree roots.
+    split: Option<u8>,
+    roots: Vec<SubtreeRoot>,
 }
 
 impl DagBuilder {
@@ -276,6 +298,8 @@ impl DagBuilder {
             last_voxel: None,
             brick_limit: 1u64 << (3 * u32::from(depth - 2)),
             voxel_count: 0,
+            split: None,
+            roots: Vec::new(),
         })
     }
 
@@ -304,11 +328,78 @@ impl DagBuilder {
         counts
     }
 
-    /// Approximate heap memory held by the builder, in bytes.
+    /// Approximate heap memory held by the builder, in bytes (the capacity
+    /// of its vectors and hash tables).
     pub fn memory_bytes(&self) -> usize {
         let tables: usize = self.tables.iter().map(|t| t.allocation_size()).sum();
         let arenas: usize = self.arenas.iter().map(NodeArena::heap_bytes).sum();
-        tables + arenas + self.leaf_table.allocation_size() + self.leaves.capacity() * 8
+        tables
+            + arenas
+            + self.leaf_table.allocation_size()
+            + self.leaves.capacity() * 8
+            + self.roots.capacity() * size_of::<SubtreeRoot>()
+    }
+
+    /// The largest extra allocation the next push can make while the old one
+    /// is still held: a hash table that grows allocates its new table (twice
+    /// the size) before freeing the old. So `memory_bytes() + growth_bytes()`
+    /// bounds the builder's heap during the next push. (Vectors grow by
+    /// reallocation, which allocators do for large blocks by remapping pages,
+    /// and the pages of new capacity are not resident until written.)
+    pub fn growth_bytes(&self) -> usize {
+        self.tables
+            .iter()
+            .chain(std::iter::once(&self.leaf_table))
+            .map(|t| 2 * t.allocation_size())
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Records every completed node of `split` (`1 ..= depth - 2`) as the
+    /// root of a subtree, for [`DagBuilder::finish_subtrees`]. Call it before
+    /// the first push. The builder still builds the whole DAG, so
+    /// [`DagBuilder::finish`] works as usual: a caller can decide at the end
+    /// whether it wants the file or the subtrees.
+    pub fn record_subtrees(&mut self, split: u8) -> Result<(), BuildError> {
+        check_split(self.depth, split)?;
+        if self.last_voxel.is_some() {
+            return Err(BuildError::Invalid {
+                what: "record_subtrees must be called before the first push".into(),
+            });
+        }
+        self.split = Some(split);
+        Ok(())
+    }
+
+    /// Completes the nodes of the split level and below, and returns the
+    /// distinct nodes of those levels with the recorded roots
+    /// ([`DagBuilder::record_subtrees`]). Meant to be called after a push
+    /// that completed a split-level cell, so that the subtrees are whole
+    /// (the next push of the same volume would start a new cell); the levels
+    /// above the split level are dropped.
+    pub fn finish_subtrees(mut self) -> Result<Subtrees, BuildError> {
+        let split = self.split.ok_or_else(|| BuildError::Invalid {
+            what: "finish_subtrees needs record_subtrees".into(),
+        })?;
+        if self.current_mask != 0 {
+            self.commit_brick(self.current_brick, self.current_mask)?;
+            self.current_mask = 0;
+        }
+        for level in (usize::from(split)..self.arenas.len()).rev() {
+            if self.pending[level].mask != 0 {
+                self.complete_pending(level)?;
+            }
+        }
+        drop(std::mem::take(&mut self.tables));
+        drop(std::mem::take(&mut self.leaf_table));
+        Ok(Subtrees {
+            depth: self.depth,
+            split,
+            attributes: self.attributes,
+            levels: self.arenas.split_off(usize::from(split)),
+            leaves: self.leaves,
+            roots: self.roots,
+        })
     }
 
     /// Adds the voxel with Morton code `code` ([`morton::encode`]). Codes must
@@ -380,6 +471,13 @@ impl DagBuilder {
         let count = u64::from(mask.count_ones());
         self.voxel_count += count;
         let id = self.intern_leaf(mask)?;
+        if self.split == Some(self.depth - 2) {
+            self.roots.push(SubtreeRoot {
+                code: brick,
+                id,
+                count,
+            });
+        }
         if self.arenas.is_empty() {
             // Depth 2: the leaf is the root; there is only brick 0.
             return Ok(());
@@ -440,6 +538,13 @@ impl DagBuilder {
     fn complete_pending(&mut self, level: usize) -> Result<(), BuildError> {
         let node = std::mem::take(&mut self.pending[level]);
         let id = self.intern_node(level, &node)?;
+        if self.split == Some(level as u8) {
+            self.roots.push(SubtreeRoot {
+                code: node.prefix,
+                id,
+                count: node.count,
+            });
+        }
         if level > 0 {
             self.add_child(level - 1, node.prefix, id, node.count)?;
         }
@@ -510,6 +615,7 @@ impl DagBuilder {
             crcs: Vec::new(),
             colors: None,
             colors_crc: 0,
+            file: None,
         };
         built.lay_out()?;
         Ok(built)
@@ -569,6 +675,102 @@ struct BuiltLevel {
     offsets: Vec<u32>,
 }
 
+/// Widths, record offsets and lengths of consecutive interior levels whose
+/// last level points into a level of `bottom_units` units (leaves, or words of
+/// a node level built elsewhere). Returns the width and byte length of each.
+fn lay_out_levels(
+    levels: &mut [BuiltLevel],
+    bottom_units: u64,
+) -> Result<(Vec<u8>, Vec<u64>), BuildError> {
+    let mut widths = vec![0; levels.len()];
+    let mut lengths = vec![0; levels.len()];
+    let mut child_units = bottom_units;
+    for level in (0..levels.len()).rev() {
+        let width =
+            layout::minimal_pointer_width(child_units).ok_or_else(|| BuildError::TooLarge {
+                what: format!(
+                    "level {} has {child_units} units, more than 4-byte pointers address",
+                    level + 1
+                ),
+            })?;
+        let arena = &levels[level].arena;
+        let mut offsets = Vec::with_capacity(arena.len());
+        let mut words = 0u64;
+        for id in 0..arena.len() {
+            offsets.push(words as u32);
+            let children = arena.node(id as u32).0.count_ones();
+            words += layout::node_record_size(children, width) / 4;
+            if words * 4 > MAX_NODE_LEVEL_BYTES {
+                return Err(BuildError::TooLarge {
+                    what: format!("level {level} exceeds {MAX_NODE_LEVEL_BYTES} bytes"),
+                });
+            }
+        }
+        levels[level].offsets = offsets;
+        widths[level] = width;
+        lengths[level] = words * 4;
+        child_units = words;
+    }
+    Ok((widths, lengths))
+}
+
+/// Generates the records of `levels[index]` in chunks. Child ids become the
+/// record offsets of `levels[index + 1]`; those of the last level are written
+/// as they are (leaf indices, or pointers into a level built elsewhere).
+fn emit_node_level(
+    levels: &[BuiltLevel],
+    index: usize,
+    width: u8,
+    attributes: AttributeKind,
+    sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+) -> io::Result<()> {
+    let level = &levels[index];
+    let child_offsets = levels.get(index + 1).map(|l| &l.offsets[..]);
+    let with_counts = attributes == AttributeKind::VoxelCount;
+    let mut buffer = Vec::with_capacity(CHUNK + 64);
+    let mut pointers = [0u32; 8];
+    for id in 0..level.arena.len() {
+        let (mask, children) = level.arena.node(id as u32);
+        let attribute = if with_counts {
+            level.arena.counts[id].min(u64::from(layout::COUNT_SATURATED)) as u32
+        } else {
+            0
+        };
+        for (p, &child) in pointers.iter_mut().zip(children) {
+            *p = match child_offsets {
+                Some(offsets) => offsets[child as usize],
+                None => child,
+            };
+        }
+        layout::encode_node_record(
+            mask as u8,
+            attribute,
+            &pointers[..children.len()],
+            width,
+            &mut buffer,
+        );
+        if buffer.len() >= CHUNK {
+            sink(&buffer)?;
+            buffer.clear();
+        }
+    }
+    if !buffer.is_empty() {
+        sink(&buffer)?;
+    }
+    Ok(())
+}
+
+/// The CRC-32C of the bytes `emit` generates.
+fn crc_of(emit: impl FnOnce(&mut dyn FnMut(&[u8]) -> io::Result<()>) -> io::Result<()>) -> u32 {
+    let mut crc = 0u32;
+    emit(&mut |chunk| {
+        crc = crc32c::crc32c_append(crc, chunk);
+        Ok(())
+    })
+    .expect("the checksum sink cannot fail");
+    crc
+}
+
 /// A finished DAG, ready to be written. Made by [`DagBuilder::finish`].
 #[derive(Debug)]
 pub struct BuiltDag {
@@ -589,18 +791,8 @@ pub struct BuiltDag {
     crcs: Vec<u32>,
     colors: Option<Vec<[u8; 4]>>,
     colors_crc: u32,
-}
-
-/// Where one section goes.
-#[derive(Clone, Copy, Debug)]
-struct Placement {
-    kind: SectionKind,
-    level: u8,
-    pointer_width: u8,
-    offset: u64,
-    length: u64,
-    item_count: u64,
-    crc: u32,
+    /// The file as it will be written (placed by [`FileLayout`]).
+    file: Option<FileLayout>,
 }
 
 /// Bytes gathered before handing them to a sink while generating a section.
@@ -627,7 +819,7 @@ impl BuiltDag {
         check_root_cube(min, size)?;
         self.root_min = min;
         self.root_size = size;
-        Ok(())
+        self.place()
     }
 
     /// Attaches one RGBA8 colour per voxel, in dense index (Morton) order, as
@@ -644,7 +836,13 @@ impl BuiltDag {
         }
         self.colors_crc = crc32c::crc32c(rgba.as_flattened());
         self.colors = Some(rgba);
-        self.check_file_size()
+        if let Err(e) = self.place() {
+            self.colors = None;
+            self.colors_crc = 0;
+            self.place()?;
+            return Err(e);
+        }
+        Ok(())
     }
 
     /// Per-level statistics (root first, leaf level last), including the node
@@ -690,60 +888,24 @@ impl BuiltDag {
 
     /// Size of the file in bytes.
     pub fn file_size(&self) -> u64 {
-        self.placements().last().map_or(0, |p| p.offset + p.length)
+        self.layout().file_size()
+    }
+
+    /// The file's header fields and sections, as [`BuiltDag::write_to`]
+    /// writes them. A caller that adds a section of its own (a colour section
+    /// streamed from elsewhere, with [`FileLayout::with_section`]) writes the
+    /// file with [`FileLayout::write_to`], taking the bytes of this DAG's
+    /// sections from [`BuiltDag::emit_section`].
+    pub fn layout(&self) -> &FileLayout {
+        self.file
+            .as_ref()
+            .expect("a BuiltDag is placed when it is made")
     }
 
     /// Writes the file. Sections are generated in chunks: no whole-file buffer.
     pub fn write_to<W: Write>(&self, w: &mut W) -> io::Result<()> {
-        let placements = self.placements();
-        let table_len = HEADER_SIZE + placements.len() * SECTION_ENTRY_SIZE;
-        let file_size = placements
-            .last()
-            .map_or(table_len as u64, |p| p.offset + p.length);
-        let mut table = Vec::with_capacity(placements.len() * SECTION_ENTRY_SIZE);
-        for p in &placements {
-            let entry = RawSectionEntry {
-                kind: p.kind.to_raw().to_le(),
-                level: p.level,
-                pointer_width: p.pointer_width,
-                reserved0: 0,
-                offset: p.offset.to_le(),
-                length: p.length.to_le(),
-                item_count: p.item_count.to_le(),
-                crc: p.crc.to_le(),
-                reserved1: 0,
-            };
-            table.extend_from_slice(bytemuck::bytes_of(&entry));
-        }
-        let mut header = RawHeader {
-            magic: MAGIC,
-            version_major: layout::VERSION_MAJOR.to_le(),
-            version_minor: layout::VERSION_MINOR.to_le(),
-            header_size: (HEADER_SIZE as u32).to_le(),
-            required_features: 0,
-            optional_features: 0,
-            depth: self.depth,
-            attribute_kind: self.attributes.to_raw(),
-            section_count: (placements.len() as u16).to_le(),
-            reserved0: 0,
-            root_min: self.root_min.map(|v| v.to_bits().to_le()),
-            root_size: self.root_size.to_bits().to_le(),
-            file_size: file_size.to_le(),
-            voxel_count: self.voxel_count.to_le(),
-            reserved1: [0; 44],
-            header_crc: 0,
-        };
-        let header_bytes: [u8; HEADER_SIZE] = bytemuck::cast(header);
-        header.header_crc = layout::header_checksum(&header_bytes, &table).to_le();
-        w.write_all(bytemuck::bytes_of(&header))?;
-        w.write_all(&table)?;
-        let mut position = table_len as u64;
-        for (index, p) in placements.iter().enumerate() {
-            write_zeros(w, p.offset - position)?;
-            self.emit_section(index, &mut |chunk| w.write_all(chunk))?;
-            position = p.offset + p.length;
-        }
-        Ok(())
+        self.layout()
+            .write_to(w, |index, sink| self.emit_section(index, sink))
     }
 
     /// The whole file in memory.
@@ -765,111 +927,55 @@ impl BuiltDag {
                 ),
             });
         }
-        self.widths = vec![0; leaf_level];
-        self.lengths = vec![0; leaf_level + 1];
-        self.lengths[leaf_level] = self.leaves.len() as u64 * 8;
-        let mut child_units = self.leaves.len() as u64;
-        for level in (0..leaf_level).rev() {
-            let width =
-                layout::minimal_pointer_width(child_units).ok_or_else(|| BuildError::TooLarge {
-                    what: format!(
-                        "level {} has {child_units} units, more than 4-byte pointers address",
-                        level + 1
-                    ),
-                })?;
-            let arena = &self.levels[level].arena;
-            let mut offsets = Vec::with_capacity(arena.len());
-            let mut words = 0u64;
-            for id in 0..arena.len() {
-                offsets.push(words as u32);
-                let children = arena.node(id as u32).0.count_ones();
-                words += layout::node_record_size(children, width) / 4;
-                if words * 4 > MAX_NODE_LEVEL_BYTES {
-                    return Err(BuildError::TooLarge {
-                        what: format!("level {level} exceeds {MAX_NODE_LEVEL_BYTES} bytes"),
-                    });
-                }
-            }
-            self.levels[level].offsets = offsets;
-            self.widths[level] = width;
-            self.lengths[level] = words * 4;
-            child_units = words;
-        }
-        let mut crcs = Vec::with_capacity(leaf_level + 1);
-        for index in 0..=leaf_level {
-            let mut crc = 0u32;
-            self.emit_section(index, &mut |chunk| {
-                crc = crc32c::crc32c_append(crc, chunk);
-                Ok(())
-            })
-            .expect("the checksum sink cannot fail");
-            crcs.push(crc);
-        }
-        self.crcs = crcs;
-        self.check_file_size()
+        let (widths, mut lengths) = lay_out_levels(&mut self.levels, self.leaves.len() as u64)?;
+        lengths.push(self.leaves.len() as u64 * 8);
+        self.widths = widths;
+        self.lengths = lengths;
+        self.crcs = (0..=leaf_level)
+            .map(|index| crc_of(|sink| self.emit_section(index, sink)))
+            .collect();
+        self.place()
     }
 
-    fn check_file_size(&self) -> Result<(), BuildError> {
-        let size = self.file_size();
-        if size > MAX_FILE_SIZE {
-            return Err(BuildError::TooLarge {
-                what: format!("the file would be {size} bytes, over {MAX_FILE_SIZE}"),
-            });
+    /// Places the sections (the level sections, then the colours if any).
+    fn place(&mut self) -> Result<(), BuildError> {
+        let leaf_level = self.levels.len();
+        let mut sections: Vec<SectionInfo> = (0..leaf_level)
+            .map(|level| {
+                SectionInfo::node_level(
+                    level as u8,
+                    self.widths[level],
+                    self.lengths[level],
+                    self.levels[level].arena.len() as u64,
+                    self.crcs[level],
+                )
+            })
+            .collect();
+        sections.push(SectionInfo::leaf_level(
+            leaf_level as u8,
+            self.leaves.len() as u64,
+            self.crcs[leaf_level],
+        ));
+        if let Some(colors) = &self.colors {
+            sections.push(SectionInfo::voxel_colors(
+                colors.len() as u64,
+                self.colors_crc,
+            ));
         }
+        let header = FileHeader {
+            depth: self.depth,
+            attributes: self.attributes,
+            root_min: self.root_min,
+            root_size: self.root_size,
+            voxel_count: self.voxel_count,
+        };
+        self.file = Some(FileLayout::new(header, sections)?);
         Ok(())
     }
 
-    /// The section table: the level sections, then the colours if any.
-    fn placements(&self) -> Vec<Placement> {
-        let leaf_level = self.levels.len();
-        let count = leaf_level + 1 + usize::from(self.colors.is_some());
-        let mut offset = layout::align_section((HEADER_SIZE + count * SECTION_ENTRY_SIZE) as u64);
-        let mut placements = Vec::with_capacity(count);
-        let mut place = |kind, level: u8, pointer_width, length, item_count, crc| {
-            placements.push(Placement {
-                kind,
-                level,
-                pointer_width,
-                offset,
-                length,
-                item_count,
-                crc,
-            });
-            offset = layout::align_section(offset + length);
-        };
-        for (level, built) in self.levels.iter().enumerate() {
-            place(
-                SectionKind::NodeLevel,
-                level as u8,
-                self.widths[level],
-                self.lengths[level],
-                built.arena.len() as u64,
-                self.crcs[level],
-            );
-        }
-        place(
-            SectionKind::LeafLevel,
-            leaf_level as u8,
-            0,
-            self.lengths[leaf_level],
-            self.leaves.len() as u64,
-            self.crcs[leaf_level],
-        );
-        if let Some(colors) = &self.colors {
-            place(
-                SectionKind::VoxelColors,
-                0,
-                0,
-                colors.len() as u64 * 4,
-                colors.len() as u64,
-                self.colors_crc,
-            );
-        }
-        placements
-    }
-
-    /// Generates the bytes of section `index` in chunks.
-    fn emit_section(
+    /// Generates the bytes of section `index` (in [`BuiltDag::layout`]'s
+    /// order: the levels root first, then the colours) in chunks.
+    pub fn emit_section(
         &self,
         index: usize,
         sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
@@ -882,59 +988,267 @@ impl BuiltDag {
             }
             return Ok(());
         }
-        let mut buffer = Vec::with_capacity(CHUNK + 64);
-        if index == leaf_level {
-            for &leaf in &self.leaves {
-                buffer.extend_from_slice(&leaf.to_le_bytes());
-                if buffer.len() >= CHUNK {
-                    sink(&buffer)?;
-                    buffer.clear();
-                }
-            }
-        } else {
-            let level = &self.levels[index];
-            let width = usize::from(self.widths[index]);
-            let child_offsets = self.levels.get(index + 1).map(|l| &l.offsets[..]);
-            let with_counts = self.attributes == AttributeKind::VoxelCount;
-            for id in 0..level.arena.len() {
-                let (mask, children) = level.arena.node(id as u32);
-                let attribute = if with_counts {
-                    level.arena.counts[id].min(u64::from(layout::COUNT_SATURATED)) as u32
-                } else {
-                    0
-                };
-                buffer.extend_from_slice(
-                    &(mask | attribute << layout::CHILD_MASK_BITS).to_le_bytes(),
-                );
-                for &child in children {
-                    let pointer = match child_offsets {
-                        Some(offsets) => offsets[child as usize],
-                        None => child,
-                    };
-                    buffer.extend_from_slice(&pointer.to_le_bytes()[..width]);
-                }
-                let padding = (4 - (children.len() * width) % 4) % 4;
-                buffer.extend_from_slice(&[0u8; 3][..padding]);
-                if buffer.len() >= CHUNK {
-                    sink(&buffer)?;
-                    buffer.clear();
-                }
-            }
+        if index < leaf_level {
+            return emit_node_level(
+                &self.levels,
+                index,
+                self.widths[index],
+                self.attributes,
+                sink,
+            );
         }
-        if !buffer.is_empty() {
+        let mut buffer = Vec::with_capacity(CHUNK);
+        for chunk in self.leaves.chunks(CHUNK / 8) {
+            buffer.clear();
+            for &leaf in chunk {
+                buffer.extend_from_slice(&leaf.to_le_bytes());
+            }
             sink(&buffer)?;
         }
         Ok(())
     }
 }
 
-fn write_zeros<W: Write>(w: &mut W, count: u64) -> io::Result<()> {
-    const ZEROS: [u8; 8] = [0; 8];
-    debug_assert!(
-        count < 8,
-        "sections are 8-aligned, so padding is under 8 bytes"
-    );
-    w.write_all(&ZEROS[..count as usize])
+/// A completed level-`split` node of a [`DagBuilder`] that records subtrees
+/// ([`DagBuilder::record_subtrees`]): the root of one complete subtree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SubtreeRoot {
+    /// Morton code of the node's cell at the split level (§11).
+    pub code: u64,
+    /// The node's id in its level of the [`Subtrees`] (a leaf index when the
+    /// split level is the leaf level).
+    pub id: u32,
+    /// Set voxels in the subtree.
+    pub count: u64,
+}
+
+/// The distinct nodes of the levels `split ..= depth - 2` of a Morton range
+/// of complete subtrees, with builder-local ids, and their roots. Made by
+/// [`DagBuilder::finish_subtrees`]; an out-of-core converter stores them and
+/// merges several of them later (see the [module documentation](self)).
+#[derive(Debug)]
+pub struct Subtrees {
+    depth: u8,
+    split: u8,
+    attributes: AttributeKind,
+    /// Interior levels `split .. depth - 2`.
+    levels: Vec<NodeArena>,
+    leaves: Vec<u64>,
+    roots: Vec<SubtreeRoot>,
+}
+
+impl Subtrees {
+    /// Depth D of the volume.
+    pub fn depth(&self) -> u8 {
+        self.depth
+    }
+
+    /// The level of the roots.
+    pub fn split_level(&self) -> u8 {
+        self.split
+    }
+
+    /// Distinct nodes of `level` (`split ..= depth - 2`; the last is the leaf level).
+    pub fn node_count(&self, level: u8) -> usize {
+        if level == self.depth - 2 {
+            self.leaves.len()
+        } else {
+            self.levels[usize::from(level - self.split)].len()
+        }
+    }
+
+    /// Node `id` of interior `level` (`split ..= depth - 3`): its header word
+    /// as a file stores it (child mask | attribute << 8, the attribute being
+    /// the saturated voxel count for attribute kind 1) and its children's ids
+    /// in the next level, in child index order. Panics when out of range.
+    pub fn node(&self, level: u8, id: u32) -> (u32, &[u32]) {
+        let arena = &self.levels[usize::from(level - self.split)];
+        let (mask, children) = arena.node(id);
+        let attribute = match self.attributes {
+            AttributeKind::VoxelCount => {
+                arena.counts[id as usize].min(u64::from(layout::COUNT_SATURATED)) as u32
+            }
+            AttributeKind::None => 0,
+        };
+        (mask | attribute << layout::CHILD_MASK_BITS, children)
+    }
+
+    /// The distinct leaf masks, in leaf id order.
+    pub fn leaves(&self) -> &[u64] {
+        &self.leaves
+    }
+
+    /// The roots, in Morton order.
+    pub fn roots(&self) -> &[SubtreeRoot] {
+        &self.roots
+    }
+}
+
+/// Builds the levels above a split level from the roots of complete
+/// subtrees whose level-`split` records are laid out elsewhere: the top of an
+/// out-of-core build. Subtrees arrive in increasing Morton order as
+/// (code, pointer, voxel count), the pointer being the position (word offset,
+/// or leaf index when the split level is the leaf level) of the subtree's root
+/// in the split level's section. Deduplicates like [`DagBuilder`], which it
+/// uses, so it makes the same levels a whole build would.
+#[derive(Debug)]
+pub struct UpperBuilder {
+    inner: DagBuilder,
+    split: u8,
+    last: Option<u64>,
+    max_pointer: Option<u32>,
+}
+
+impl UpperBuilder {
+    /// Builds levels `0 .. split` of a depth-`depth` volume (`split` in
+    /// `1 ..= depth - 2`).
+    pub fn new(depth: u8, attributes: AttributeKind, split: u8) -> Result<Self, BuildError> {
+        let inner = DagBuilder::new(depth, attributes)?;
+        check_split(depth, split)?;
+        Ok(UpperBuilder {
+            inner,
+            split,
+            last: None,
+            max_pointer: None,
+        })
+    }
+
+    /// Adds the subtree whose root is the level-`split` cell `code`, stored at
+    /// `pointer`, holding `count` voxels (at least one). Codes must be
+    /// strictly increasing.
+    pub fn push_subtree(&mut self, code: u64, pointer: u32, count: u64) -> Result<(), BuildError> {
+        if code >> (3 * u32::from(self.split)) != 0 {
+            return Err(BuildError::OutOfVolume {
+                unit: "subtree",
+                code,
+                depth: self.inner.depth,
+            });
+        }
+        if let Some(previous) = self.last
+            && code <= previous
+        {
+            return Err(BuildError::NotIncreasing {
+                unit: "subtree",
+                previous,
+                code,
+            });
+        }
+        if count == 0 {
+            return Err(BuildError::Invalid {
+                what: format!("subtree {code:#x} holds no voxels"),
+            });
+        }
+        self.last = Some(code);
+        self.max_pointer = self.max_pointer.max(Some(pointer));
+        self.inner.voxel_count += count;
+        self.inner
+            .add_child(usize::from(self.split) - 1, code, pointer, count)
+    }
+
+    /// Completes the upper levels. `split_units` is the number of units of
+    /// the split level's section (its words, or its leaves), which sets the
+    /// pointer width of the level above it; every pointer given must be below it.
+    pub fn finish(mut self, split_units: u64) -> Result<UpperLevels, BuildError> {
+        if let Some(p) = self.max_pointer
+            && u64::from(p) >= split_units
+        {
+            return Err(BuildError::Invalid {
+                what: format!("pointer {p} is outside a split level of {split_units} units"),
+            });
+        }
+        let split = usize::from(self.split);
+        for level in (0..split).rev() {
+            if self.inner.pending[level].mask != 0 {
+                self.inner.complete_pending(level)?;
+            }
+        }
+        let attributes = self.inner.attributes;
+        let voxel_count = self.inner.voxel_count;
+        let mut levels: Vec<BuiltLevel> = self
+            .inner
+            .arenas
+            .into_iter()
+            .take(split)
+            .map(|arena| BuiltLevel {
+                arena,
+                offsets: Vec::new(),
+            })
+            .collect();
+        let (widths, lengths) = lay_out_levels(&mut levels, split_units)?;
+        let mut upper = UpperLevels {
+            attributes,
+            voxel_count,
+            levels,
+            widths,
+            lengths,
+            crcs: Vec::new(),
+        };
+        upper.crcs = (0..split)
+            .map(|level| crc_of(|sink| upper.emit_section(level, sink)))
+            .collect();
+        Ok(upper)
+    }
+}
+
+/// The levels `0 .. split` made by an [`UpperBuilder`], laid out.
+#[derive(Debug)]
+pub struct UpperLevels {
+    attributes: AttributeKind,
+    voxel_count: u64,
+    levels: Vec<BuiltLevel>,
+    widths: Vec<u8>,
+    lengths: Vec<u64>,
+    crcs: Vec<u32>,
+}
+
+impl UpperLevels {
+    /// Set voxels in all the subtrees.
+    pub fn voxel_count(&self) -> u64 {
+        self.voxel_count
+    }
+
+    /// The section of each level, root first.
+    pub fn sections(&self) -> Vec<SectionInfo> {
+        (0..self.levels.len())
+            .map(|l| {
+                SectionInfo::node_level(
+                    l as u8,
+                    self.widths[l],
+                    self.lengths[l],
+                    self.levels[l].arena.len() as u64,
+                    self.crcs[l],
+                )
+            })
+            .collect()
+    }
+
+    /// Generates the bytes of the section of `level` in chunks.
+    pub fn emit_section(
+        &self,
+        level: usize,
+        sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+    ) -> io::Result<()> {
+        emit_node_level(
+            &self.levels,
+            level,
+            self.widths[level],
+            self.attributes,
+            sink,
+        )
+    }
+}
+
+fn check_split(depth: u8, split: u8) -> Result<(), BuildError> {
+    if split >= 1 && split <= depth.saturating_sub(2) {
+        Ok(())
+    } else {
+        Err(BuildError::Invalid {
+            what: format!(
+                "split level {split} is outside 1..={} for depth {depth}",
+                depth.saturating_sub(2)
+            ),
+        })
+    }
 }
 
 #[cfg(test)]
@@ -996,5 +1310,164 @@ mod tests {
         let a = hash_node(3, &[1, 2]);
         assert_ne!(a, hash_node(3, &[2, 1]));
         assert_ne!(a, hash_node(5, &[1, 2]));
+    }
+
+    fn some_voxels(depth: u8) -> Vec<[u32; 3]> {
+        let mut state = 3u64;
+        let side = 1u64 << depth;
+        (0..400)
+            .map(|i| {
+                state = state.wrapping_mul(6364136223846793005).wrapping_add(1);
+                let r = state >> 11;
+                // Clumps of neighbours, so that subtrees repeat.
+                let base = if i % 3 == 0 { r } else { r & !0x0303_0303 };
+                [0, 16, 32].map(|s| ((base >> s) % side) as u32)
+            })
+            .collect()
+    }
+
+    /// One run of subtrees holds the levels below the split exactly as the
+    /// whole build does (same ids); laid out in id order, with the upper
+    /// levels from an `UpperBuilder` and the file from a `FileLayout`, it
+    /// makes the same bytes.
+    #[test]
+    fn one_run_of_subtrees_rebuilds_the_file() {
+        for (depth, split) in [(6u8, 2u8), (6, 4), (5, 1), (4, 2)] {
+            let voxels = some_voxels(depth);
+            let whole =
+                DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, voxels.clone()).unwrap();
+            let mut codes: Vec<u64> = voxels
+                .iter()
+                .map(|v| morton::encode(v[0], v[1], v[2]))
+                .collect();
+            codes.sort_unstable();
+            codes.dedup();
+            let mut b = DagBuilder::new(depth, AttributeKind::VoxelCount).unwrap();
+            b.record_subtrees(split).unwrap();
+            for &c in &codes {
+                b.push_morton(c).unwrap();
+            }
+            let sub = b.finish_subtrees().unwrap();
+            let leaf = depth - 2;
+            let counts = whole.level_stats();
+            for level in split..=leaf {
+                assert_eq!(
+                    sub.node_count(level) as u64,
+                    counts[usize::from(level)].node_count
+                );
+            }
+            assert_eq!(
+                sub.roots().len() as u128,
+                counts[usize::from(split)].tree_nodes
+            );
+            assert_eq!(
+                sub.roots().iter().map(|r| r.count).sum::<u64>(),
+                whole.voxel_count()
+            );
+            // Lay out the lower levels in id order, bottom up.
+            let mut lower = Vec::new();
+            let mut leaf_bytes = Vec::new();
+            for &m in sub.leaves() {
+                leaf_bytes.extend_from_slice(&m.to_le_bytes());
+            }
+            lower.push((
+                SectionInfo::leaf_level(
+                    leaf,
+                    sub.leaves().len() as u64,
+                    crc32c::crc32c(&leaf_bytes),
+                ),
+                leaf_bytes,
+            ));
+            let mut offsets: Vec<u32> = (0..sub.leaves().len() as u32).collect();
+            let mut units = sub.leaves().len() as u64;
+            for level in (split..leaf).rev() {
+                let width = layout::minimal_pointer_width(units).unwrap();
+                let (mut bytes, mut next) = (Vec::new(), Vec::new());
+                for id in 0..sub.node_count(level) as u32 {
+                    next.push((bytes.len() / 4) as u32);
+                    let (header, children) = sub.node(level, id);
+                    let pointers: Vec<u32> =
+                        children.iter().map(|&c| offsets[c as usize]).collect();
+                    layout::encode_node_record(
+                        header as u8,
+                        header >> layout::CHILD_MASK_BITS,
+                        &pointers,
+                        width,
+                        &mut bytes,
+                    );
+                }
+                let info = SectionInfo::node_level(
+                    level,
+                    width,
+                    bytes.len() as u64,
+                    next.len() as u64,
+                    crc32c::crc32c(&bytes),
+                );
+                units = bytes.len() as u64 / 4;
+                offsets = next;
+                lower.push((info, bytes));
+            }
+            lower.reverse();
+            let mut upper = UpperBuilder::new(depth, AttributeKind::VoxelCount, split).unwrap();
+            for r in sub.roots() {
+                upper
+                    .push_subtree(r.code, offsets[r.id as usize], r.count)
+                    .unwrap();
+            }
+            let upper = upper.finish(units).unwrap();
+            assert_eq!(upper.voxel_count(), whole.voxel_count());
+            let mut sections = upper.sections();
+            sections.extend(lower.iter().map(|(info, _)| *info));
+            let header = FileHeader {
+                depth,
+                attributes: AttributeKind::VoxelCount,
+                root_min: [0.0; 3],
+                root_size: 1.0,
+                voxel_count: whole.voxel_count(),
+            };
+            let file = FileLayout::new(header, sections).unwrap();
+            let mut bytes = Vec::new();
+            file.write_to(&mut bytes, |i, sink| {
+                match i.checked_sub(usize::from(split)) {
+                    None => upper.emit_section(i, sink),
+                    Some(j) => sink(&lower[j].1),
+                }
+            })
+            .unwrap();
+            assert!(bytes == whole.to_bytes(), "depth {depth} split {split}");
+        }
+    }
+
+    #[test]
+    fn subtree_and_upper_builders_refuse_misuse() {
+        let mut b = DagBuilder::new(5, AttributeKind::VoxelCount).unwrap();
+        assert!(matches!(
+            b.record_subtrees(0),
+            Err(BuildError::Invalid { .. })
+        ));
+        assert!(b.record_subtrees(4).is_err(), "past the leaf level");
+        b.push_morton(1).unwrap();
+        assert!(b.record_subtrees(1).is_err(), "after a push");
+        assert!(b.finish_subtrees().is_err(), "never asked to record");
+        assert!(UpperBuilder::new(5, AttributeKind::None, 0).is_err());
+        let mut u = UpperBuilder::new(5, AttributeKind::None, 2).unwrap();
+        u.push_subtree(3, 0, 1).unwrap();
+        assert!(matches!(
+            u.push_subtree(3, 8, 1),
+            Err(BuildError::NotIncreasing { .. })
+        ));
+        assert!(matches!(
+            u.push_subtree(64, 8, 1),
+            Err(BuildError::OutOfVolume { .. })
+        ));
+        assert!(matches!(
+            u.push_subtree(5, 8, 0),
+            Err(BuildError::Invalid { .. })
+        ));
+        u.push_subtree(5, 8, 2).unwrap();
+        assert!(
+            matches!(u.finish(8), Err(BuildError::Invalid { .. })),
+            "pointer 8 is outside 8 units"
+        );
     }
 }

@@ -231,6 +231,32 @@ pub fn node_record_size(child_count: u32, width: u8) -> u64 {
     4 + pointers.div_ceil(NODE_ALIGN) * NODE_ALIGN
 }
 
+/// Appends the bytes of one node record (§8) to `out`: the header word
+/// `child_mask | attribute << 8`, then one pointer of `width` bytes per child
+/// (`children`, in increasing child index order, as many as `child_mask` has
+/// bits), then zero padding to [`NODE_ALIGN`]. Every writer of node levels
+/// goes through here, so there is one encoding of records.
+#[inline]
+pub fn encode_node_record(
+    child_mask: u8,
+    attribute: u32,
+    children: &[u32],
+    width: u8,
+    out: &mut Vec<u8>,
+) {
+    debug_assert_eq!(children.len() as u32, child_mask.count_ones());
+    debug_assert!(attribute <= ATTRIBUTE_MAX);
+    debug_assert!((1..=4).contains(&width));
+    let header = u32::from(child_mask) | attribute << CHILD_MASK_BITS;
+    out.extend_from_slice(&header.to_le_bytes());
+    let width = usize::from(width);
+    for &child in children {
+        out.extend_from_slice(&child.to_le_bytes()[..width]);
+    }
+    let padding = (4 - (children.len() * width) % 4) % 4;
+    out.extend_from_slice(&[0u8; 3][..padding]);
+}
+
 /// Rounds `offset` up to the next multiple of [`SECTION_ALIGN`].
 pub fn align_section(offset: u64) -> u64 {
     offset.div_ceil(SECTION_ALIGN) * SECTION_ALIGN

@@ -3,7 +3,9 @@
 //! - [`layout`]: byte positions, constants and the fixed-size on-disk records;
 //! - [`reader`]: [`Dag`], a zero-copy view over `&[u8]` that never panics;
 //! - [`builder`]: [`DagBuilder`], which makes a file from voxels with
-//!   per-level deduplication;
+//!   per-level deduplication (also in runs of subtrees, for out-of-core builds);
+//! - [`assemble`]: [`assemble::FileLayout`], the one writer of headers and
+//!   section tables, which streams section bytes from callbacks;
 //! - [`validate`]: checks every rule of the spec and reports every violation;
 //! - [`transport`]: the zstd-compressed transport form;
 //! - [`batch`]: the text and binary ray and hit batch formats;
@@ -16,6 +18,7 @@
 //! (feature `output`), which writes a file atomically.
 #![deny(missing_docs)]
 
+pub mod assemble;
 pub mod batch;
 pub mod builder;
 pub mod error;

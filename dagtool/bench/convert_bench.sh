@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Benchmarks of `dagtool convert` (release build), printed as Markdown tables.
 #
-#   dagtool/bench/convert_bench.sh [what...]      what: dragon14 dragon16 solid14 vdb sizes
-#                                                 (default: all)
+#   dagtool/bench/convert_bench.sh [what...]      what: dragon14 dragon16 solid14 ooc14 ooc16
+#                                                 vdb sizes (default: all)
 #
 # Environment: MESHES (default ../shared/meshes beside the repository), RUNS (default 3),
 # OUT (scratch folder, default a temporary folder, removed afterwards), CARGO_TARGET_DIR.
@@ -10,6 +10,12 @@
 # - dragon14: dragon.obj at depth 14, RUNS runs: wall time, user CPU time, peak RSS.
 # - dragon16: dragon.obj at depth 16, once: wall time, peak RSS.
 # - solid14:  dragon.obj at depth 14 with --solid, once: wall time, peak RSS.
+# - ooc14:    dragon.obj at depth 14 in memory and under --memory-limit LIMITS14 (default
+#             "1G 512M 256M"), RUNS runs each, interleaved: medians of wall time, user CPU and peak
+#             RSS, runs spilled, bytes written to temporary files; every file validates and is
+#             byte-identical to the in-memory one, with the same `dagtool info --json` levels.
+# - ooc16:    dragon.obj at depth 16 in memory and under --memory-limit LIMITS16 (default
+#             "2G 1G"), once each: the same figures; every file validates and is identical.
 # - vdb:      OpenVDB's vdb_tool (mesh to level set, 2048^3, narrow band of 1 voxel) against
 #             `dagtool convert` at depth 11 (2048^3), RUNS runs each, medians of wall time and
 #             peak RSS (/usr/bin/time -v), and the output sizes.
@@ -22,7 +28,9 @@ cd "$(dirname "$0")/../.."
 ROOT=$(pwd)
 MESHES=${MESHES:-$ROOT/../shared/meshes}
 RUNS=${RUNS:-3}
-WHAT=${*:-dragon14 dragon16 solid14 vdb sizes}
+WHAT=${*:-dragon14 dragon16 solid14 ooc14 ooc16 vdb sizes}
+LIMITS14=${LIMITS14:-1G 512M 256M}
+LIMITS16=${LIMITS16:-2G 1G}
 if [ ! -d "$MESHES" ]; then
     echo "meshes not found at $MESHES (set MESHES)" >&2
     exit 1
@@ -36,10 +44,11 @@ mkdir -p "$SCRATCH"
 
 median() { sort -g | awk '{ v[NR] = $1 } END { if (NR % 2) print v[(NR + 1) / 2]; else print (v[NR / 2] + v[NR / 2 + 1]) / 2 }'; }
 
-# Runs a command under /usr/bin/time -v; prints "wall_s user_s maxrss_kb".
+# Runs a command under /usr/bin/time -v; prints "wall_s user_s maxrss_kb". Its standard
+# output is kept in $SCRATCH/stdout.log.
 measure() {
     local log=$SCRATCH/time.log
-    /usr/bin/time -v "$@" >/dev/null 2>"$log"
+    /usr/bin/time -v "$@" >"$SCRATCH/stdout.log" 2>"$log"
     local wall user rss
     wall=$(awk -F': ' '/Elapsed \(wall clock\)/ { n = split($2, p, ":"); s = 0; for (i = 1; i <= n; i++) s = s * 60 + p[i]; print s }' "$log")
     user=$(awk -F': ' '/User time/ { print $2 }' "$log")
@@ -48,6 +57,66 @@ measure() {
 }
 
 load() { cut -d' ' -f1-3 /proc/loadavg; }
+
+# From the last conversion's summary: "runs temp_bytes".
+spilled() {
+    local runs temp
+    runs=$(sed -n 's/.*spilled \([0-9]*\) run.*/\1/p' "$SCRATCH/stdout.log")
+    temp=$(sed -n 's/.*(\([0-9]*\) bytes) written to unnamed temporary files.*/\1/p' "$SCRATCH/stdout.log")
+    echo "${runs:-0} ${temp:-0}"
+}
+
+# Asserts that FILE validates and holds the same bytes and `info --json` levels as REFERENCE.
+same_as() {
+    "$DAGTOOL" validate "$1" >/dev/null || { echo "$1 is INVALID" >&2; exit 1; }
+    cmp -s "$1" "$2" || { echo "$1 differs from $2" >&2; exit 1; }
+    "$DAGTOOL" info --json "$1" >"$SCRATCH/a.json"
+    "$DAGTOOL" info --json "$2" >"$SCRATCH/b.json"
+    python3 - "$SCRATCH/a.json" "$SCRATCH/b.json" <<'EOF'
+import json, sys
+a, b = (json.load(open(p))["levels"] for p in sys.argv[1:])
+assert a == b, "level tables differ"
+EOF
+}
+
+# Out-of-core table: dragon.obj at DEPTH, in memory and under each limit, N runs each.
+ooc() {
+    local depth=$1 n=$2; shift 2
+    local limits=("" "$@")
+    local ref=$SCRATCH/ooc-ref.vdag
+    for i in $(seq "$n"); do
+        for l in "${limits[@]}"; do
+            local tag=${l:-in-memory}
+            local args=()
+            [ -n "$l" ] && args=(--memory-limit "$l")
+            local out=$SCRATCH/ooc-$tag.vdag
+            read -r wall user rss < <(measure "$DAGTOOL" convert "$MESHES/dragon.obj" -o "$out" --depth "$depth" --force "${args[@]}")
+            read -r runs temp < <(spilled)
+            echo "$wall $user $rss $runs $temp $(stat -c %s "$out")" >>"$SCRATCH/ooc-$tag"
+            if [ -z "$l" ]; then
+                "$DAGTOOL" validate "$out" >/dev/null || { echo "$out is INVALID" >&2; exit 1; }
+                mv "$out" "$ref"
+            else
+                same_as "$out" "$ref"
+                rm -f "$out"
+            fi
+        done
+    done
+    echo "| --memory-limit | wall (s) | user CPU (s) | peak RSS (MiB) | runs spilled | temp bytes written | file bytes |"
+    echo "|---|---:|---:|---:|---:|---:|---:|"
+    for l in "${limits[@]}"; do
+        local f=$SCRATCH/ooc-${l:-in-memory}
+        echo "| ${l:-(default: in memory)} | $(cut -d' ' -f1 "$f" | median) | $(cut -d' ' -f2 "$f" | median) | $(( $(cut -d' ' -f3 "$f" | median | cut -d. -f1) / 1024 )) | $(cut -d' ' -f4 "$f" | median) | $(cut -d' ' -f5 "$f" | median) | $(cut -d' ' -f6 "$f" | head -1) |"
+    done
+    echo
+    echo "every run (wall user rss_kb runs temp_bytes file_bytes):"
+    for l in "${limits[@]}"; do
+        echo "- ${l:-in memory}: $(tr '\n' ';' <"$SCRATCH/ooc-${l:-in-memory}")"
+    done
+    echo
+    echo "every file valid and byte-identical to the in-memory one, same \`dagtool info --json\` levels"
+    rm -f "$ref" "$SCRATCH"/ooc-*
+}
 
 for what in $WHAT; do
 case $what in
@@ -89,6 +158,26 @@ solid14)
     echo "| $wall | $user | $((rss / 1024)) | $(stat -c %s "$SCRATCH/solid14.vdag") |"
     "$DAGTOOL" validate "$SCRATCH/solid14.vdag" >/dev/null && echo && echo "output valid"
     rm -f "$SCRATCH/solid14.vdag"
+    echo
+    ;;
+ooc14)
+    echo "### dragon.obj at depth 14, in memory and out of core ($RUNS runs each; load average $(load); $(nproc) cores)"
+    echo
+    echo '`'"dagtool convert dragon.obj -o d14.vdag --depth 14 --force [--memory-limit L]"'`'
+    echo
+    # shellcheck disable=SC2086
+    ooc 14 "$RUNS" $LIMITS14
+    echo "load average after: $(load)"
+    echo
+    ;;
+ooc16)
+    echo "### dragon.obj at depth 16, in memory and out of core (once each; load average $(load); $(nproc) cores)"
+    echo
+    echo '`'"dagtool convert dragon.obj -o d16.vdag --depth 16 --force [--memory-limit L]"'`'
+    echo
+    # shellcheck disable=SC2086
+    ooc 16 1 $LIMITS16
+    echo "load average after: $(load)"
     echo
     ;;
 vdb)
@@ -143,7 +232,7 @@ EOF
     echo
     ;;
 *)
-    echo "unknown benchmark $what (dragon14 dragon16 solid14 vdb sizes)" >&2
+    echo "unknown benchmark $what (dragon14 dragon16 solid14 ooc14 ooc16 vdb sizes)" >&2
     exit 2
     ;;
 esac

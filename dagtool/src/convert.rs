@@ -5,11 +5,15 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use dagfmt::builder::{BuiltDag, DagBuilder, LevelStats};
+use dagfmt::assemble::{FileHeader, FileLayout};
+use dagfmt::builder::LevelStats;
 use dagfmt::layout::{AttributeKind, MAX_DEPTH, MIN_DEPTH};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use crate::error::ConvertError;
+use crate::external::{
+    ColourSink, Colours, DagSink, FinishedDag, MIN_RUN_BUDGET, Scratch, SpillReport, SpillSettings,
+};
 use crate::mesh::{DEFAULT_COLOR, GridMapping, Mesh, SnappedMesh};
 use crate::output::{check_output, write_atomic};
 use crate::pipeline::{self, Bins, ChunkOutput, SolidMode, VoxelizeConfig};
@@ -18,6 +22,12 @@ use crate::sysinfo::{
 };
 use crate::voxelize::{MAX_CHUNK_BITS, MIN_CHUNK_BITS, NO_TAG};
 use crate::voxlist;
+
+/// log2 of the side, in voxels, of the subtrees whose roots split the build
+/// into runs when it spills (the split level is `depth - SPLIT_BITS`): the
+/// default chunk size, so that a run boundary falls between two chunks and a
+/// single subtree (at most 32³ bricks) is always small.
+pub const SPLIT_BITS: u32 = 7;
 
 /// What the input file is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -53,6 +63,23 @@ pub struct ConvertOptions {
     pub memory_limit: Option<u64>,
     /// log2 of the chunk side (`None`: automatic).
     pub chunk_bits: Option<u32>,
+    /// Directory of the temporary files (`None`: the output's directory).
+    pub tmp_dir: Option<PathBuf>,
+    /// Testing: spill whatever the memory, in runs and buckets of this shape.
+    pub forced_spill: Option<ForcedSpill>,
+}
+
+/// Testing: a conversion that spills to temporary files whatever the memory
+/// limit (the hidden `--spill-*` options), to check that the out-of-core
+/// build makes the same file as the in-memory one.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ForcedSpill {
+    /// Split level P (`None`: `depth - 7`, at least 1).
+    pub split_level: Option<u8>,
+    /// Level-P cells per run (`None`: 1).
+    pub cells_per_run: Option<u64>,
+    /// Buckets of every level's merge (`None`: sized to the budget).
+    pub buckets: Option<u32>,
 }
 
 impl ConvertOptions {
@@ -69,6 +96,8 @@ impl ConvertOptions {
             progress: false,
             memory_limit: None,
             chunk_bits: None,
+            tmp_dir: None,
+            forced_spill: None,
         }
     }
 }
@@ -118,6 +147,20 @@ pub struct ConvertSummary {
     pub total_seconds: f64,
     /// Peak resident set size (`VmHWM`).
     pub peak_rss: Option<u64>,
+    /// The memory limit in bytes.
+    pub memory_limit: u64,
+    /// Bytes the in-memory DAG builder could use before spilling a run.
+    pub run_budget: u64,
+    /// What spilling to temporary files did.
+    pub spill: SpillReport,
+    /// The directory of the temporary files.
+    pub tmp_dir: PathBuf,
+    /// Bytes written to temporary files (DAG runs, merge, colours).
+    pub temp_bytes: u64,
+    /// The most bytes the temporary files held at once.
+    pub temp_peak_bytes: u64,
+    /// Whether the colours went through a temporary file.
+    pub colors_spilled: bool,
     /// CPU seconds of the whole process.
     pub cpu_seconds: Option<f64>,
     /// CPU seconds of the thread that runs the DAG builder (and loads, writes).
@@ -182,6 +225,41 @@ impl ConvertSummary {
             "time:     {:.2} s (load {:.2} s, voxelize and build {:.2} s, write {:.2} s)",
             self.total_seconds, self.load_seconds, self.build_seconds, self.write_seconds
         );
+        if self.spill.runs == 0 {
+            let _ = writeln!(
+                s,
+                "memory:   limit {}; the DAG was built in memory (up to {} allowed before spilling)",
+                human_bytes(self.memory_limit),
+                human_bytes(self.run_budget)
+            );
+        } else {
+            let plural = |n: u64| if n == 1 { "" } else { "s" };
+            let _ = writeln!(
+                s,
+                "memory:   limit {}; spilled {} run{} to temporary files, merged with up to {} bucket{} per level in {:.2} s",
+                human_bytes(self.memory_limit),
+                self.spill.runs,
+                plural(self.spill.runs),
+                self.spill.max_buckets,
+                plural(self.spill.max_buckets),
+                self.spill.merge_seconds
+            );
+        }
+        if self.temp_bytes > 0 {
+            let _ = writeln!(
+                s,
+                "temp:     {} ({} bytes) written to unnamed temporary files in {}, at most {} at once{}",
+                human_bytes(self.temp_bytes),
+                self.temp_bytes,
+                self.tmp_dir.display(),
+                human_bytes(self.temp_peak_bytes),
+                if self.colors_spilled {
+                    " (colours included)"
+                } else {
+                    ""
+                }
+            );
+        }
         if let (Some(all), Some(main)) = (self.cpu_seconds, self.main_thread_cpu_seconds) {
             let _ = writeln!(
                 s,
@@ -195,6 +273,15 @@ impl ConvertSummary {
             None => {
                 let _ = write!(s, "peak RSS: unknown");
             }
+        }
+        if let Some(peak) = self.peak_rss
+            && peak > self.memory_limit
+        {
+            let _ = write!(
+                s,
+                "\nwarning:  peak RSS exceeded the memory limit of {}",
+                human_bytes(self.memory_limit)
+            );
         }
         for w in &self.warnings {
             let _ = write!(s, "\nwarning:  {w}");
@@ -269,14 +356,34 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
             opts.input.display()
         )));
     }
+    // Both directories are checked before any work: the temporary files'
+    // (which the check makes one of), and the output's when it differs.
+    let out_dir = dagfmt::output::output_dir(&opts.output);
+    let tmp_dir = opts.tmp_dir.clone().unwrap_or_else(|| out_dir.clone());
+    let scratch = Scratch::new(&tmp_dir)?;
+    if tmp_dir != out_dir {
+        tempfile::tempfile_in(&out_dir).map_err(|e| {
+            ConvertError::io(
+                format!(
+                    "cannot create files in output directory {}",
+                    out_dir.display()
+                ),
+                e,
+            )
+        })?;
+    }
     let limit = opts
         .memory_limit
         .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
     let format = detect_format(&opts.input, opts.format)?;
     let mut summary = match format {
-        InputFormat::Voxels => convert_voxels(opts, limit)?,
-        _ => convert_mesh(opts, limit)?,
+        InputFormat::Voxels => convert_voxels(opts, limit, &scratch)?,
+        _ => convert_mesh(opts, limit, &scratch)?,
     };
+    summary.memory_limit = limit;
+    summary.tmp_dir = tmp_dir;
+    summary.temp_bytes = scratch.bytes_written();
+    summary.temp_peak_bytes = scratch.peak_bytes();
     summary.total_seconds = start.elapsed().as_secs_f64();
     summary.peak_rss = peak_rss();
     summary.cpu_seconds = process_cpu_seconds();
@@ -284,9 +391,10 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     Ok(summary)
 }
 
-/// Checks the memory in use against the limit.
+/// Checks the peak memory so far against the limit: loading the input is
+/// the minimal working set, which the limit cannot shrink.
 fn check_memory(limit: u64, what: &str) -> Result<(), ConvertError> {
-    if let Some(rss) = current_rss()
+    if let Some(rss) = peak_rss()
         && rss > limit
     {
         return Err(ConvertError::Limit(format!(
@@ -298,20 +406,130 @@ fn check_memory(limit: u64, what: &str) -> Result<(), ConvertError> {
     Ok(())
 }
 
+/// Room left for allocator slack, thread stacks and whatever the estimates
+/// miss.
+fn margin(limit: u64) -> u64 {
+    (limit / 16).max(24 << 20)
+}
+
+/// How the memory limit is shared out once the input is loaded.
+#[derive(Clone, Copy, Debug)]
+struct MemoryPlan {
+    /// Bytes the in-memory DAG builder may hold before a run is spilled.
+    run_budget: u64,
+    /// Bytes of colours kept in memory before they go to a temporary file.
+    colour_cap: u64,
+}
+
+/// Shares out `limit`: `fixed` is what the conversion holds whatever the DAG
+/// (the resident memory once the input is loaded, the voxelization buffers,
+/// the solid fill's column state), with `what` saying what it is made of.
+fn plan_memory(
+    limit: u64,
+    fixed: u64,
+    what: &str,
+    colors: bool,
+) -> Result<MemoryPlan, ConvertError> {
+    let colour_cap = if colors {
+        (limit / 16).clamp(1 << 20, 256 << 20)
+    } else {
+        0
+    };
+    let needed = fixed + colour_cap + margin(limit) + MIN_RUN_BUDGET;
+    if needed > limit {
+        let colours = if colors {
+            format!(", {} of colours", human_bytes(colour_cap))
+        } else {
+            String::new()
+        };
+        return Err(ConvertError::Limit(format!(
+            "memory limit of {} is below the minimal working set of {} ({what}{colours}, {} for the DAG builder and a margin of {}); raise --memory-limit",
+            human_bytes(limit),
+            human_bytes(needed),
+            human_bytes(MIN_RUN_BUDGET),
+            human_bytes(margin(limit)),
+        )));
+    }
+    Ok(MemoryPlan {
+        run_budget: limit - fixed - colour_cap - margin(limit),
+        colour_cap,
+    })
+}
+
+/// The settings of the DAG sink for a conversion at `depth`.
+fn spill_settings(
+    opts: &ConvertOptions,
+    depth: u8,
+    run_budget: u64,
+) -> Result<SpillSettings, ConvertError> {
+    let default_split = u32::from(depth).saturating_sub(SPLIT_BITS) as u8;
+    match opts.forced_spill {
+        None => Ok(SpillSettings {
+            split_level: default_split,
+            run_budget,
+            cells_per_run: None,
+            buckets: None,
+        }),
+        Some(f) => {
+            let split = f.split_level.unwrap_or(default_split.max(1));
+            if depth < 3 || !(1..=depth - 2).contains(&split) {
+                return Err(ConvertError::Usage(format!(
+                    "--spill-split-level {split} is outside 1..={} for depth {depth}",
+                    depth.saturating_sub(2)
+                )));
+            }
+            if f.cells_per_run == Some(0) || f.buckets == Some(0) {
+                return Err(ConvertError::Usage(
+                    "--spill-cells-per-run and --spill-buckets must be at least 1".into(),
+                ));
+            }
+            Ok(SpillSettings {
+                split_level: split,
+                run_budget,
+                cells_per_run: Some(f.cells_per_run.unwrap_or(1)),
+                buckets: f.buckets,
+            })
+        }
+    }
+}
+
+/// What the merge of spilled runs may use: the limit less what is resident
+/// once the voxelization's memory is freed.
+fn merge_budget(limit: u64) -> u64 {
+    limit.saturating_sub(current_rss().unwrap_or(0) + margin(limit))
+}
+
 fn write_output(
     opts: &ConvertOptions,
-    built: &BuiltDag,
+    dag: &FinishedDag,
+    colors: Option<&Colours>,
+    header: FileHeader,
     summary: &mut ConvertSummary,
 ) -> Result<(), ConvertError> {
     let t = Instant::now();
-    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| built.write_to(w))?;
+    let mut sections = dag.level_sections();
+    let levels = sections.len();
+    sections.extend(colors.map(Colours::section));
+    let layout = FileLayout::new(header, sections).map_err(build_error)?;
+    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| {
+        layout.write_to(w, |index, sink| match index.checked_sub(levels) {
+            None => dag.emit_level(index, sink),
+            Some(_) => colors.expect("a colour section").emit(sink),
+        })
+    })?;
     summary.write_seconds = t.elapsed().as_secs_f64();
-    summary.voxels = built.voxel_count();
-    summary.levels = built.level_stats();
+    summary.voxels = dag.voxel_count();
+    summary.levels = dag.level_stats();
+    summary.spill = dag.report().clone();
+    summary.colors_spilled = colors.is_some_and(Colours::spilled);
     Ok(())
 }
 
-fn convert_voxels(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, ConvertError> {
+fn convert_voxels(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+) -> Result<ConvertSummary, ConvertError> {
     if opts.solid {
         return Err(ConvertError::Usage(
             "--solid needs a mesh input, not a voxel list".into(),
@@ -325,6 +543,13 @@ fn convert_voxels(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, C
     let t = Instant::now();
     let list = voxlist::read(&opts.input, opts.depth)?;
     check_memory(limit, "reading the voxel list")?;
+    let resident = current_rss().unwrap_or(0);
+    let plan = plan_memory(
+        limit,
+        resident,
+        &format!("{} resident with the voxel list", human_bytes(resident)),
+        false,
+    )?;
     let mut summary = ConvertSummary {
         input: format!(
             "{}: voxel list, {} records, {} distinct voxels",
@@ -337,12 +562,12 @@ fn convert_voxels(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, C
         root_min: [0.0; 3],
         root_size: (1u64 << list.depth) as f64,
         load_seconds: t.elapsed().as_secs_f64(),
+        run_budget: plan.run_budget,
         ..Default::default()
     };
     let t = Instant::now();
-    let mut builder =
-        DagBuilder::new(list.depth, AttributeKind::VoxelCount).map_err(build_error)?;
-    builder.set_root_cube(summary.root_min, summary.root_size);
+    let settings = spill_settings(opts, list.depth, plan.run_budget)?;
+    let mut sink = DagSink::new(list.depth, AttributeKind::VoxelCount, settings, scratch)?;
     let mut i = 0;
     while i < list.codes.len() {
         let brick = list.codes[i] >> 6;
@@ -351,16 +576,27 @@ fn convert_voxels(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, C
             mask |= 1 << (list.codes[i] & 63);
             i += 1;
         }
-        builder.push_brick(brick, mask).map_err(build_error)?;
+        sink.push_brick(brick, mask)?;
     }
     drop(list);
-    let built = builder.finish().map_err(build_error)?;
+    let dag = sink.finish(|| merge_budget(limit))?;
     summary.build_seconds = t.elapsed().as_secs_f64();
-    write_output(opts, &built, &mut summary)?;
+    let header = FileHeader {
+        depth: summary.depth,
+        attributes: AttributeKind::VoxelCount,
+        root_min: summary.root_min,
+        root_size: summary.root_size,
+        voxel_count: dag.voxel_count(),
+    };
+    write_output(opts, &dag, None, header, &mut summary)?;
     Ok(summary)
 }
 
-fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, ConvertError> {
+fn convert_mesh(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+) -> Result<ConvertSummary, ConvertError> {
     let depth = opts.depth.ok_or_else(|| {
         ConvertError::Usage("converting a mesh needs --depth D or --resolution N".into())
     })?;
@@ -384,6 +620,8 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
             9 + MAX_CHUNK_BITS
         )));
     }
+    // Checked before any work, like the rest of the command line.
+    spill_settings(opts, depth, 0)?;
     let t = Instant::now();
     let mesh = Mesh::load_obj(&opts.input)?;
     let check = mesh.check()?;
@@ -423,9 +661,11 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
             "solid: open mesh, majority of the crossing parities along x, y and z".into()
         }
     };
-    if solid != SolidMode::Surface {
-        // The column parity state holds one bit per voxel column of the
-        // projected area, per axis; the chunk walk visits every chunk.
+    // The column parity state holds one bit per voxel column of the
+    // projected area, per axis; the chunk walk visits every chunk.
+    let solid_state = if solid == SolidMode::Surface {
+        0
+    } else {
         let axes = if solid == SolidMode::Vote { 3 } else { 1 };
         let state = axes * (1u64 << (2 * u32::from(depth))) / 8;
         if state > limit / 2 {
@@ -436,7 +676,8 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
                 human_bytes(limit)
             )));
         }
-    }
+        state
+    };
     summary.input = format!(
         "{}: {} triangles ({} degenerate){}",
         opts.input.display(),
@@ -455,13 +696,40 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
 
     let t = Instant::now();
     let threads = rayon::current_num_threads();
+    // Worst-case bytes of one chunk on its way to the builder: its bricks
+    // (code and mask) and, with colours, a triangle tag per voxel.
     let chunk_bytes = (1u64 << (3 * (chunk_bits - 2))) * 16
         + if opts.colors {
             4u64 << (3 * chunk_bits)
         } else {
             0
         };
-    let batch = ((limit / 16 / chunk_bytes.max(1)) as usize).clamp(threads, 8 * threads);
+    // Up to four batches are alive at once (one being voxelized, two queued,
+    // one being consumed), plus a chunk buffer per thread: at most 1/32 of
+    // the limit, or one chunk per thread when even that is more.
+    let batch = ((limit / 128 / chunk_bytes.max(1)) as usize).clamp(threads, 8 * threads);
+    // Chunks that go through the pipeline: those with triangles, and with
+    // --solid possibly every chunk of the volume.
+    let chunks = if solid == SolidMode::Surface {
+        bins.codes.len() as u64
+    } else {
+        1u64 << (3 * (u32::from(depth) - chunk_bits))
+    };
+    let pipeline_bytes =
+        (4 * batch as u64 + threads as u64).min(chunks + threads as u64) * chunk_bytes;
+    let resident = current_rss().unwrap_or(0);
+    let plan = plan_memory(
+        limit,
+        resident + pipeline_bytes + solid_state,
+        &format!(
+            "{} resident with the mesh and its triangle bins, {} of voxelization buffers, {} of solid fill state",
+            human_bytes(resident),
+            human_bytes(pipeline_bytes),
+            human_bytes(solid_state)
+        ),
+        opts.colors,
+    )?;
+    summary.run_budget = plan.run_budget;
     let cfg = VoxelizeConfig {
         depth,
         chunk_bits,
@@ -469,9 +737,11 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
         tags: opts.colors,
         batch,
     };
-    let mut builder = DagBuilder::new(depth, AttributeKind::VoxelCount).map_err(build_error)?;
-    builder.set_root_cube(mapping.root_min, mapping.root_size);
-    let mut colors: Vec<[u8; 4]> = Vec::new();
+    let settings = spill_settings(opts, depth, plan.run_budget)?;
+    let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let mut colors = opts
+        .colors
+        .then(|| ColourSink::new(scratch, plan.colour_cap));
     let bar = if opts.progress && std::io::stderr().is_terminal() {
         let bar = ProgressBar::with_draw_target(
             Some(bins.codes.len() as u64),
@@ -487,7 +757,7 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
         ProgressBar::hidden()
     };
     let shift = cfg.brick_shift();
-    let mut batches = 0u64;
+    let mut rgba: Vec<u8> = Vec::new();
     let report = pipeline::run(
         &snapped,
         &bins,
@@ -497,23 +767,23 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
             for out in outs {
                 let base = out.code << shift;
                 for &(brick, mask) in &out.bricks {
-                    builder
-                        .push_brick(base | u64::from(brick), mask)
-                        .map_err(build_error)?;
+                    sink.push_brick(base | u64::from(brick), mask)?;
                 }
-                if opts.colors {
-                    colors.extend(out.tags.iter().map(|&t| {
-                        if t == NO_TAG {
+                if let Some(colors) = &mut colors {
+                    rgba.clear();
+                    for &t in &out.tags {
+                        rgba.extend_from_slice(&if t == NO_TAG {
                             DEFAULT_COLOR
                         } else {
                             mesh.triangle_color(t as usize)
-                        }
-                    }));
+                        });
+                    }
+                    colors.write(&rgba)?;
                 }
             }
-            batches += 1;
-            if batches.is_multiple_of(8) {
-                check_memory(limit, "voxelizing")?;
+            let runs = sink.runs();
+            if runs > 0 {
+                bar.set_message(format!("({runs} runs spilled)"));
             }
             Ok(())
         },
@@ -523,14 +793,21 @@ fn convert_mesh(opts: &ConvertOptions, limit: u64) -> Result<ConvertSummary, Con
     summary.surface_chunks = report.surface_chunks;
     summary.threads = threads;
     summary.fill_chunks = report.fill_chunks;
+    // The mesh and the bins are not needed any more: free them for the merge.
+    drop(rgba);
     drop(bins);
     drop(snapped);
-    let mut built = builder.finish().map_err(build_error)?;
-    if opts.colors {
-        built.set_colors(colors).map_err(build_error)?;
-    }
+    drop(mesh);
+    let colors = colors.map(ColourSink::finish).transpose()?;
+    let dag = sink.finish(|| merge_budget(limit))?;
     summary.build_seconds = t.elapsed().as_secs_f64();
-    check_memory(limit, "building the DAG")?;
-    write_output(opts, &built, &mut summary)?;
+    let header = FileHeader {
+        depth,
+        attributes: AttributeKind::VoxelCount,
+        root_min: mapping.root_min,
+        root_size: mapping.root_size,
+        voxel_count: dag.voxel_count(),
+    };
+    write_output(opts, &dag, colors.as_ref(), header, &mut summary)?;
     Ok(summary)
 }

@@ -7,6 +7,8 @@
 //! - [`pipeline`]: binning, parallel chunked voxelization in Morton order;
 //! - [`voxlist`]: the text and binary voxel list formats;
 //! - [`convert`]: the `convert` command (pipeline + builder + atomic output);
+//! - [`external`]: the out-of-core DAG build (runs spilled to unnamed
+//!   temporary files, merged level by level within a memory budget);
 //! - [`output`]: atomic file output;
 //! - [`demo`]: the whole pipeline on a built-in scene;
 //! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`;
@@ -18,6 +20,7 @@ pub mod cmd;
 pub mod convert;
 pub mod demo;
 pub mod error;
+pub mod external;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod geom;

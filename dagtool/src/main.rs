@@ -49,14 +49,26 @@ ATTRIBUTES
   Nodes store subtree voxel counts (attribute kind 1). --colors adds a colour
   section: each surface voxel takes the diffuse colour (Kd, alpha from d) of
   the lowest-numbered triangle touching it; voxels with no material and
-  interior voxels of --solid are white. Colours need 4 bytes per voxel in memory.
+  interior voxels of --solid are white. Colours take 4 bytes per voxel; beyond
+  1/16 of --memory-limit (at most 256 MiB) they are streamed to a temporary file.
 
-MEMORY AND OUTPUT
-  The volume is processed in chunks of 128^3 voxels in Morton order on all cores;
-  memory is the mesh, the triangle bins and the DAG's distinct nodes. The process
-  stops with an error if its resident memory exceeds --memory-limit. The output is
-  written to a temporary file beside it, synced and renamed: it is either complete
-  or absent. An existing output is never replaced without --force.";
+MEMORY, TEMPORARY FILES AND OUTPUT
+  The volume is processed in chunks of 128^3 voxels in Morton order on all cores.
+  --memory-limit (default: 3/4 of physical memory) sizes the work: the mesh, its
+  triangle bins, the voxelization buffers and the solid fill state come first
+  (a limit below them is refused before voxelizing, with what they need); the
+  rest goes to the DAG builder. When the DAG's distinct nodes outgrow it, the
+  build continues in runs of whole 128^3 subtrees, each written to temporary
+  files, and the runs are merged level by level with exact deduplication: the
+  file is the same, byte for byte, as one built in memory, whatever the limit.
+  The summary says how many runs were spilled, how many bytes were written to
+  temporary files, and the peak resident memory.
+  Temporary files go to --tmp-dir (default: the output's directory); they need
+  up to about three times the output's size, which the summary reports as the
+  most they held at once. They are unnamed (O_TMPFILE on Linux): nothing is left
+  behind on success, on error, or if the process is killed. The output is
+  written to a temporary file beside it, synced and renamed: it is either
+  complete or absent. An existing output is never replaced without --force.";
 
 #[derive(Parser, Debug)]
 #[command(
@@ -203,10 +215,23 @@ struct ConvertArgs {
     /// Input format.
     #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
     input_format: FormatArg,
-    /// Stop with an error if resident memory exceeds this (e.g. 4G, 512M);
-    /// default: 3/4 of physical memory.
+    /// Memory to work in (e.g. 4G, 512M): beyond it the DAG is built in runs
+    /// spilled to temporary files; default: 3/4 of physical memory.
     #[arg(long)]
     memory_limit: Option<String>,
+    /// Directory of the (unnamed) temporary files; default: the output's
+    /// directory.
+    #[arg(long, value_name = "DIR")]
+    tmp_dir: Option<PathBuf>,
+    /// Testing: spill whatever the memory, with subtrees rooted at this level.
+    #[arg(long, hide = true)]
+    spill_split_level: Option<u8>,
+    /// Testing: spill whatever the memory, after this many subtrees per run.
+    #[arg(long, hide = true)]
+    spill_cells_per_run: Option<u64>,
+    /// Testing: spill whatever the memory, merging in this many buckets.
+    #[arg(long, hide = true)]
+    spill_buckets: Option<u32>,
     /// Chunk side as log2 of voxels (2..=7; default 7 = 128^3). The output
     /// does not depend on it.
     #[arg(long)]
@@ -248,6 +273,17 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
     opts.progress = !args.quiet;
     opts.memory_limit = memory_limit;
     opts.chunk_bits = args.chunk_bits;
+    opts.tmp_dir = args.tmp_dir;
+    if args.spill_split_level.is_some()
+        || args.spill_cells_per_run.is_some()
+        || args.spill_buckets.is_some()
+    {
+        opts.forced_spill = Some(convert::ForcedSpill {
+            split_level: args.spill_split_level,
+            cells_per_run: args.spill_cells_per_run,
+            buckets: args.spill_buckets,
+        });
+    }
     match args.threads {
         Some(0) => return Err(ConvertError::Usage("--threads must be at least 1".into())),
         // The global pool: the pipeline's producer thread uses it too.

@@ -16,6 +16,7 @@ mod commands;
 mod fuzz_smoke;
 mod mapped_files;
 mod meshes;
+mod out_of_core;
 mod solid;
 mod surface;
 mod verify;

@@ -290,6 +290,21 @@ impl ConvertSummary {
     }
 }
 
+/// A spinner while the DAG is finished (in memory, or by merging the spilled
+/// runs level by level), on a terminal with progress.
+fn merge_spinner(opts: &ConvertOptions) -> ProgressBar {
+    if !(opts.progress && std::io::stderr().is_terminal()) {
+        return ProgressBar::hidden();
+    }
+    let spinner = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
+    if let Ok(style) = ProgressStyle::with_template("{spinner} {msg}, {elapsed} elapsed") {
+        spinner.set_style(style);
+    }
+    spinner.set_message("finishing the DAG");
+    spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+    spinner
+}
+
 /// Checks a depth given on the command line.
 pub fn check_depth(depth: u32) -> Result<u8, ConvertError> {
     if (u32::from(MIN_DEPTH)..=u32::from(MAX_DEPTH)).contains(&depth) {
@@ -579,7 +594,11 @@ fn convert_voxels(
         sink.push_brick(brick, mask)?;
     }
     drop(list);
-    let dag = sink.finish(|| merge_budget(limit))?;
+    let spinner = merge_spinner(opts);
+    let dag = sink.finish(|| merge_budget(limit), &|m| {
+        spinner.set_message(m.to_string())
+    })?;
+    spinner.finish_and_clear();
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth: summary.depth,
@@ -799,7 +818,11 @@ fn convert_mesh(
     drop(snapped);
     drop(mesh);
     let colors = colors.map(ColourSink::finish).transpose()?;
-    let dag = sink.finish(|| merge_budget(limit))?;
+    let spinner = merge_spinner(opts);
+    let dag = sink.finish(|| merge_budget(limit), &|m| {
+        spinner.set_message(m.to_string())
+    })?;
+    spinner.finish_and_clear();
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth,

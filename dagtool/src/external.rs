@@ -852,10 +852,12 @@ impl DagSink {
 
     /// Completes the DAG: in memory when nothing was spilled, else by
     /// merging the runs within `merge_budget` bytes (sized by the caller
-    /// once the voxelization's memory is free).
+    /// once the voxelization's memory is free), telling `progress` which
+    /// level it merges (for a progress display).
     pub fn finish(
         mut self,
         merge_budget: impl FnOnce() -> u64,
+        progress: &dyn Fn(&str),
     ) -> Result<FinishedDag, ConvertError> {
         let cells = self.counter.cells();
         // A forced spill (testing) goes through the merge even with one run.
@@ -896,7 +898,7 @@ impl DagSink {
             forced_buckets: settings.buckets,
             runs: &runs,
         };
-        let (external, max_buckets) = merger.run(levels)?;
+        let (external, max_buckets) = merger.run(levels, progress)?;
         Ok(FinishedDag {
             inner: Inner::External(external),
             cells,
@@ -1131,12 +1133,21 @@ impl Merger<'_> {
     /// Merges every level from the leaves up to the split level (`levels`
     /// holds the runs' records of each, split level first), then builds the
     /// levels above.
-    fn run(&self, mut levels: Vec<WordData>) -> Result<(ExternalDag, u64), ConvertError> {
+    fn run(
+        &self,
+        mut levels: Vec<WordData>,
+        progress: &dyn Fn(&str),
+    ) -> Result<(ExternalDag, u64), ConvertError> {
         let leaf = self.runs.leaf;
         let mut lower: Vec<SectionFile> = Vec::new();
         let mut below: Option<MergedLevel> = None;
         let mut max_buckets = 0;
         for level in (self.split..=leaf).rev() {
+            progress(&format!(
+                "merging the spilled runs: level {level} ({} of {})",
+                leaf - level + 1,
+                leaf - self.split + 1
+            ));
             let data = levels.pop().expect("one record file per level");
             let merged = self.merge_level(level, data, below.as_ref())?;
             max_buckets = max_buckets.max(merged.buckets as u64);
@@ -1146,6 +1157,7 @@ impl Merger<'_> {
             below = Some(merged);
         }
         let top = below.expect("at least the leaf level");
+        progress("merging the spilled runs: the levels above the split");
         let upper = self.upper_levels(&top)?;
         lower.push(top.section);
         lower.reverse();

@@ -44,7 +44,7 @@ fn sink_bytes(
         sink.push_brick(brick, mask).unwrap();
     }
     // A small merge budget: the forced bucket count decides anyway.
-    let dag = sink.finish(|| 1 << 20).unwrap();
+    let dag = sink.finish(|| 1 << 20, &|_| {}).unwrap();
     let runs = dag.report().runs;
     let header = FileHeader {
         depth,

@@ -20,7 +20,8 @@
 #             `dagtool convert` at depth 11 (2048^3), RUNS runs each, medians of wall time and
 #             peak RSS (/usr/bin/time -v), and the output sizes.
 # - sizes:    every mesh at depths 10, 12, 14: .vdag bytes, the same DAG with 32-bit pointers
-#             (classic SVDAG layout) and as an SVO (dagtool info --json).
+#             (classic SVDAG layout) and as an SVO, and the pointer-entropy bound (headers +
+#             leaves + the zero-order entropy of the pointers), all from dagtool info --json.
 #
 # Timings on a shared machine vary with its load; the load average is printed with each table.
 set -euo pipefail
@@ -212,8 +213,8 @@ vdb)
 sizes)
     echo "### Sizes: .vdag vs the same DAG with 32-bit pointers vs SVO"
     echo
-    echo "| mesh | depth | voxels | .vdag bytes | classic 32-bit bytes | SVO bytes | classic / vdag | SVO / vdag |"
-    echo "|---|---|---|---|---|---|---|---|"
+    echo "| mesh | depth | voxels | .vdag bytes | classic 32-bit bytes | SVO bytes | vdag / classic | SVO / vdag | entropy bound / classic |"
+    echo "|---|---|---|---|---|---|---|---|---|"
     for obj in "$MESHES"/*.obj; do
         name=$(basename "$obj")
         for d in 10 12 14; do
@@ -224,7 +225,8 @@ import json, sys
 name, depth, path = sys.argv[1], sys.argv[2], sys.argv[3]
 j = json.load(open(path))
 f, c, s = int(j["file_bytes"]), int(j["classic_svdag_bytes"]), int(j["svo_bytes"])
-print(f"| {name} | {depth} | {j['voxel_count']} | {f} | {c} | {s} | {c / f:.2f} | {s / f:.2f} |")
+e = int(j["pointer_entropy_bound_bytes"])
+print(f"| {name} | {depth} | {j['voxel_count']:,} | {f:,} | {c:,} | {s:,} | {f / c:.2f} | {s / f:.2f} | {e / c:.2f} |")
 EOF
             rm -f "$SCRATCH/s.vdag"
         done

@@ -34,10 +34,12 @@
 //!    rounding of the per-ray traversal, so it never drops a cell that a ray's
 //!    own (rounded) test would enter.
 //! 3. Each ray is then traced, in that order, through the subtrees of the
-//!    listed cells with the very same steps as [`Tracer::trace`]
-//!    ([`Tracer::descend`]); its first hit is its answer, and a ray that meets
-//!    none of them misses. The cells are listed lazily, a few at a time, so
-//!    that the beam walk stops as soon as every ray of the packet has hit.
+//!    listed cells that it meets itself (its own slab test, before any node
+//!    is read) with the very same steps as [`Tracer::trace`] (a [`Walk`]
+//!    whose `top` is the cell), several rays in flight at once; its first hit
+//!    is its answer, and a ray that meets none of them misses. The cells are
+//!    listed lazily, a few at a time, so that the beam walk stops as soon as
+//!    every ray of the packet has hit.
 //!
 //! The answers are those of [`Tracer::trace`] except where a ray passes
 //! exactly through an edge or corner shared by cells of the beam level: there

@@ -28,12 +28,11 @@
 //!    it does not hit it, and a `tmax` exactly at a cell's entry does). Both
 //!    answers are within the tolerance of the semantics.
 //!
-//!    [`Tracer::trace`] runs the traversal in one loop ([`Tracer::descend`]).
-//!    The batch API ([`Tracer::trace_sequential_into`], and so
-//!    [`Tracer::trace_batch`], which runs it on every core) runs the same steps
-//!    as a resumable [`Walk`] that stops before every read of a node or leaf
-//!    below the root, after prefetching it, and keeps [`LANES`] rays in flight,
-//!    resuming them in turn, so that the cache misses of one ray, which bound
+//!    The traversal is a resumable [`Walk`]: it stops before every read of a
+//!    node or leaf below the root, after prefetching it. [`Tracer::trace`]
+//!    resumes at once; the batch API ([`Tracer::trace_sequential_into`], and
+//!    so [`Tracer::trace_batch`], which runs it on every core) keeps [`LANES`]
+//!    rays in flight, resuming them in turn, so that the cache misses of one ray, which bound
 //!    the traversal of large DAGs, overlap with the work on the others. Every
 //!    ray runs through the very same steps either way, so the answers are
 //!    identical. Runs of coherent rays (a shared origin, such as a camera's)
@@ -549,7 +548,12 @@ impl<'a> Tracer<'a> {
         match self.begin(ray, &mut stack, &mut fault)? {
             Begun::Done(hit) => Ok(hit),
             Begun::Walk(walk) => {
-                let cell = self.descend(&walk, 0, Vec3A::ZERO, 0, &mut stack, &mut fault);
+                let mut walk = walk;
+                let cell = loop {
+                    if let Some(cell) = self.resume(&mut walk, &mut stack, &mut fault) {
+                        break cell;
+                    }
+                };
                 self.finish(&walk.ray(), cell, &stack, fault)
             }
         }
@@ -904,7 +908,11 @@ impl<'a> Tracer<'a> {
     ) -> Option<(Found, f32, u8)> {
         let cell = match self.start(p, fault) {
             Err(done) => done,
-            Ok(walk) => self.descend(&walk, 0, Vec3A::ZERO, 0, stack, fault),
+            Ok(mut walk) => loop {
+                if let Some(cell) = self.resume(&mut walk, stack, fault) {
+                    break cell;
+                }
+            },
         };
         cell.map(|(pos, level, leaf)| self.found(p, pos, level, leaf))
     }
@@ -1081,124 +1089,6 @@ impl<'a> Tracer<'a> {
         None
     }
 
-    /// The front-to-back traversal of `walk`'s ray through the subtree of
-    /// node `word` of level `top` (lower corner at mirrored grid position
-    /// `top_pos`), in one loop: the steps of [`Tracer::resume`] without
-    /// suspending. Returns the first occupied cell found in that subtree;
-    /// `stack[top..]` then holds its path below `top`. With `top` = 0 and
-    /// the root, this is the whole traversal of [`Tracer::trace`].
-    #[inline(always)]
-    pub(crate) fn descend(
-        &self,
-        walk: &Walk,
-        top: u8,
-        top_pos: Vec3A,
-        top_word: u32,
-        stack: &mut Stack,
-        fault: &mut Option<Fault>,
-    ) -> Option<Cell> {
-        let q = &walk.q;
-        let neg = q.neg & 7;
-        let (origin, inv_dir) = (q.origin, q.inv_dir);
-        let plane = |p: Vec3A| (p - origin) * inv_dir;
-        let stop = walk.stop;
-        let mut level = top;
-        let mut pos = top_pos;
-        let mut size = self.cell_size[usize::from(top) & 31];
-        let mut word = top_word;
-        // The slab parameters of the node's planes at 0, 1/4, 1/2, 3/4 and 1
-        // of its edge: a child's lower, middle and upper planes are three of
-        // its parent's, so only two are computed per step, and they are off
-        // the path from one node to the next.
-        let quarter = size * 0.25;
-        let mut t = [
-            plane(pos),
-            plane(pos + Vec3A::splat(quarter)),
-            plane(pos + Vec3A::splat(2.0 * quarter)),
-            plane(pos + Vec3A::splat(3.0 * quarter)),
-            plane(pos + Vec3A::splat(size)),
-        ];
-        loop {
-            // Visit the node `word` of `level`: the children the ray passes through.
-            let header =
-                self.levels[usize::from(level) & LEVEL_INDEX].header_or_fault(level, word, fault);
-            let t_enter = max(t[0].max_element(), q.tmin);
-            let t_exit = min(t[4].min_element(), q.tmax);
-            let mut mask = header as u8;
-            let mut remaining = if t_enter <= t_exit {
-                chain(neg, t_enter, t_exit, t[2]) & mask
-            } else {
-                0
-            };
-            loop {
-                if remaining == 0 {
-                    while remaining == 0 {
-                        if level == top {
-                            return None;
-                        }
-                        // Back to the parent: undo the step into this node.
-                        level -= 1;
-                        let parent = stack[usize::from(level) & LEVEL_INDEX];
-                        pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
-                        size *= 2.0;
-                        word = parent.word;
-                        mask = parent.mask;
-                        remaining = parent.remaining;
-                    }
-                    let quarter = size * 0.25;
-                    t = [
-                        plane(pos),
-                        plane(pos + Vec3A::splat(quarter)),
-                        plane(pos + Vec3A::splat(2.0 * quarter)),
-                        plane(pos + Vec3A::splat(3.0 * quarter)),
-                        plane(pos + Vec3A::splat(size)),
-                    ];
-                }
-                let child = FIRST[neg][usize::from(remaining)];
-                remaining &= !(1 << child);
-                let rank = u32::from(POPCOUNT8[usize::from(mask & ((1u8 << child) - 1))]);
-                let l = usize::from(level) & LEVEL_INDEX;
-                let pointer = self.levels[l].pointer_or_fault(level, word, rank, fault);
-                let m = (usize::from(child) ^ neg) & 7;
-                let half = size * 0.5;
-                let child_pos = pos + CHILD_STEPS[m] * half;
-                let upper = UPPER[m];
-                let c0 = Vec3A::select(upper, t[2], t[0]);
-                let c2 = Vec3A::select(upper, t[3], t[1]);
-                let c4 = Vec3A::select(upper, t[4], t[2]);
-                stack[l] = Frame {
-                    word,
-                    mask,
-                    remaining,
-                    last: child,
-                    _pad: 0,
-                };
-                let child_level = level + 1;
-                let eighth = half * 0.25;
-                let c1 = plane(child_pos + Vec3A::splat(eighth));
-                let c3 = plane(child_pos + Vec3A::splat(3.0 * eighth));
-                if child_level == stop {
-                    if stop == q.level {
-                        return Some((child_pos, child_level, pointer));
-                    }
-                    let planes = [c0, c1, c2, c3, c4];
-                    if let Some((cell, cell_level)) =
-                        self.brick_planes(q, pointer, child_pos, &planes, fault)
-                    {
-                        return Some((cell, cell_level, pointer));
-                    }
-                    continue;
-                }
-                t = [c0, c1, c2, c3, c4];
-                level = child_level;
-                word = pointer;
-                pos = child_pos;
-                size = half;
-                break;
-            }
-        }
-    }
-
     /// The answer for the cell of `level` whose lower corner is at mirrored
     /// grid position `pos`: the cell in the file's frame, its entry parameter
     /// and its entry face.
@@ -1248,29 +1138,14 @@ impl<'a> Tracer<'a> {
         pos: Vec3A,
         fault: &mut Option<Fault>,
     ) -> Option<(Vec3A, u8)> {
-        let planes =
-            [0.0f32, 1.0, 2.0, 3.0, 4.0].map(|k| (pos + Vec3A::splat(k) - p.origin) * p.inv_dir);
-        self.brick_planes(p, leaf, pos, &planes, fault)
-    }
-
-    /// [`Tracer::brick`] given the slab parameters of the brick's planes at
-    /// offsets 0 to 4.
-    #[inline(always)]
-    fn brick_planes(
-        &self,
-        p: &Prepared,
-        leaf: u32,
-        pos: Vec3A,
-        planes: &[Vec3A; 5],
-        fault: &mut Option<Fault>,
-    ) -> Option<(Vec3A, u8)> {
         let bits = self.levels[usize::from(self.leaf_level) & LEVEL_INDEX].leaf_or_fault(
             self.leaf_level,
             leaf,
             fault,
         );
         let neg = p.neg;
-        let [t0, t1, t2, t3, t4] = *planes;
+        let [t0, t1, t2, t3, t4] =
+            [0.0f32, 1.0, 2.0, 3.0, 4.0].map(|k| (pos + Vec3A::splat(k) - p.origin) * p.inv_dir);
         let t_enter = max(t0.max_element(), p.tmin);
         let t_exit = min(t4.min_element(), p.tmax);
         if t_enter > t_exit {
@@ -1480,17 +1355,6 @@ pub(crate) fn max(a: f32, b: f32) -> f32 {
 pub(crate) fn min(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
 }
-
-/// Per child index: the axes in which the child is the upper half.
-const UPPER: [BVec3A; 8] = {
-    let mut t = [BVec3A::FALSE; 8];
-    let mut c = 0;
-    while c < 8 {
-        t[c] = BVec3A::new(c & 1 != 0, c & 2 != 0, c & 4 != 0);
-        c += 1;
-    }
-    t
-};
 
 /// Unit steps to the eight children, by child index (x, y, z = bits 0, 1, 2).
 const CHILD_STEPS: [Vec3A; 8] = {

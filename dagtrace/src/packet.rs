@@ -75,6 +75,13 @@ const CELLS_PER_ROUND: usize = 8;
 /// per-ray slab parameters (spec/VDAG.md §20.8 allows 8 such units).
 const BEAM_MARGIN: f64 = 1.0 / (1u64 << 18) as f64;
 
+/// The direction octant of `d`: bit `i` set when component `i` is negative
+/// (the traversal's mirrored axes, `Prepared::neg`).
+#[inline]
+fn octant(d: [f32; 3]) -> usize {
+    usize::from(d[0] < 0.0) | usize::from(d[1] < 0.0) << 1 | usize::from(d[2] < 0.0) << 2
+}
+
 /// One occupied cell of the beam level that the beam meets.
 #[derive(Clone, Copy, Debug, Default)]
 struct BeamCell {
@@ -176,19 +183,30 @@ impl Tracer<'_> {
         let Some(first) = rays.first() else {
             return 0;
         };
-        let signs = |r: &Ray| {
-            let d = r.dir;
-            let largest = d[0].abs().max(d[1].abs()).max(d[2].abs());
-            // Components treated as zero (or nearly) by the set-up, and NaNs,
-            // keep a ray out of packets.
-            if !(d.iter().all(|c| c.abs() > largest * 1e-6) && largest.is_finite()) {
-                return None;
-            }
-            Some(u8::from(d[0] < 0.0) | u8::from(d[1] < 0.0) << 1 | u8::from(d[2] < 0.0) << 2)
+        // The cheap tests first: this runs at every ray of a batch.
+        let same_start = |r: &Ray| {
+            r.origin.map(f32::to_bits) == first.origin.map(f32::to_bits)
+                && r.tmin.to_bits() == first.tmin.to_bits()
+                && r.tmax.to_bits() == first.tmax.to_bits()
+                && r.level == first.level
         };
-        let Some(octant) = signs(first) else {
+        let candidates = rays
+            .iter()
+            .take(PACKET_RAYS)
+            .take_while(|r| same_start(r))
+            .count();
+        if candidates < MIN_PACKET_RAYS {
             return 0;
+        }
+        // Components treated as zero (or nearly) by the set-up, and NaNs,
+        // keep a ray out of packets.
+        let regular = |d: [f32; 3]| {
+            let largest = d[0].abs().max(d[1].abs()).max(d[2].abs());
+            largest.is_finite() && d.iter().all(|c| c.abs() > largest * 1e-6)
         };
+        if !regular(first.dir) {
+            return 0;
+        }
         // Rays of a coarser level of detail than the beam's cells, and rays
         // of an impossible level (an error, reported ray by ray), go alone.
         if first
@@ -218,22 +236,17 @@ impl Tracer<'_> {
             d.map(|c| c / length)
         };
         let axis = unit(first.dir);
-        let same = |r: &Ray| {
+        let first_octant = octant(first.dir);
+        let coherent = |r: &Ray| {
             let u = unit(r.dir);
             let chord =
                 ((u[0] - axis[0]).powi(2) + (u[1] - axis[1]).powi(2) + (u[2] - axis[2]).powi(2))
                     .sqrt();
-            r.origin.map(f32::to_bits) == first.origin.map(f32::to_bits)
-                && r.tmin.to_bits() == first.tmin.to_bits()
-                && r.tmax.to_bits() == first.tmax.to_bits()
-                && r.level == first.level
-                && signs(r) == Some(octant)
-                && chord <= max_spread
+            regular(r.dir) && octant(r.dir) == first_octant && chord <= max_spread
         };
-        let n = rays
+        let n = rays[..candidates]
             .iter()
-            .take(PACKET_RAYS)
-            .take_while(|r| same(r))
+            .take_while(|r| coherent(r))
             .count();
         if n >= MIN_PACKET_RAYS { n } else { 0 }
     }
@@ -254,9 +267,7 @@ impl Tracer<'_> {
         let Some(beam) = self.beam(rays) else {
             return false;
         };
-        let d = rays[0].dir;
-        let neg =
-            usize::from(d[0] < 0.0) | usize::from(d[1] < 0.0) << 1 | usize::from(d[2] < 0.0) << 2;
+        let neg = octant(rays[0].dir);
         let mut walk = BeamWalk {
             frames: [BeamFrame::default(); LEVEL_SLOTS],
             level: None,
@@ -443,7 +454,7 @@ impl Tracer<'_> {
         let mut origin = [0f64; 3];
         for (a, o) in origin.iter_mut().enumerate() {
             let g = (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale;
-            *o = if first.dir[a] < 0.0 {
+            *o = if octant(first.dir) >> a & 1 == 1 {
                 resolution - g
             } else {
                 g

@@ -315,12 +315,6 @@ pub(crate) struct Walk {
     pub(crate) target: u32,
     /// Mirrored grid position of the brick to read next.
     pub(crate) brick_pos: Vec3A,
-    /// While a brick is pending: the node the walk stands on (its word, child
-    /// mask, the children still to visit, and the child being read).
-    pub(crate) word: u32,
-    pub(crate) mask: u8,
-    pub(crate) remaining: u8,
-    pub(crate) last: u8,
 }
 
 impl Walk {
@@ -547,8 +541,7 @@ impl<'a> Tracer<'a> {
         let mut fault = None;
         match self.begin(ray, &mut stack, &mut fault)? {
             Begun::Done(hit) => Ok(hit),
-            Begun::Walk(walk) => {
-                let mut walk = walk;
+            Begun::Walk(mut walk) => {
                 let cell = loop {
                     if let Some(cell) = self.resume(&mut walk, &mut stack, &mut fault) {
                         break cell;
@@ -909,8 +902,8 @@ impl<'a> Tracer<'a> {
         let cell = match self.start(p, fault) {
             Err(done) => done,
             Ok(mut walk) => loop {
-                if let Some(cell) = self.resume(&mut walk, stack, fault) {
-                    break cell;
+                if let Some(done) = self.resume(&mut walk, stack, fault) {
+                    break done;
                 }
             },
         };
@@ -965,10 +958,6 @@ impl<'a> Tracer<'a> {
             size: root_size,
             target: 0,
             brick_pos: Vec3A::ZERO,
-            word: 0,
-            mask: 0,
-            remaining: 0,
-            last: 0,
         })
     }
 
@@ -1008,20 +997,16 @@ impl<'a> Tracer<'a> {
                 0
             };
         } else {
+            // A brick below the node the walk stands on, whose frame is on
+            // the stack.
             let leaf = walk.target;
-            word = walk.word;
-            mask = walk.mask;
-            remaining = walk.remaining;
             if let Some((cell, cell_level)) = self.brick(q, leaf, walk.brick_pos, fault) {
-                stack[usize::from(level) & LEVEL_INDEX] = Frame {
-                    word,
-                    mask,
-                    remaining,
-                    last: walk.last,
-                    _pad: 0,
-                };
                 return Some(Some((cell, cell_level, leaf)));
             }
+            let frame = stack[usize::from(level) & LEVEL_INDEX];
+            word = frame.word;
+            mask = frame.mask;
+            remaining = frame.remaining;
         }
         while remaining == 0 {
             if level == walk.top {
@@ -1043,16 +1028,16 @@ impl<'a> Tracer<'a> {
         let pointer = self.levels[l].pointer_or_fault(level, word, rank, fault);
         let half = size * 0.5;
         let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
+        stack[l] = Frame {
+            word,
+            mask,
+            remaining,
+            last: child,
+            _pad: 0,
+        };
         let child_level = level + 1;
         if child_level == stop {
             if stop == q.level {
-                stack[l] = Frame {
-                    word,
-                    mask,
-                    remaining,
-                    last: child,
-                    _pad: 0,
-                };
                 return Some(Some((child_pos, child_level, pointer)));
             }
             // The brick is read on resumption; the walk stays at its parent.
@@ -1061,22 +1046,11 @@ impl<'a> Tracer<'a> {
             walk.pending = Pending::Brick;
             walk.target = pointer;
             walk.brick_pos = child_pos;
-            walk.word = word;
-            walk.mask = mask;
-            walk.remaining = remaining;
-            walk.last = child;
             walk.level = level;
             walk.pos = pos;
             walk.size = size;
             return None;
         }
-        stack[l] = Frame {
-            word,
-            mask,
-            remaining,
-            last: child,
-            _pad: 0,
-        };
         prefetch(
             self.levels[usize::from(child_level) & LEVEL_INDEX].bytes,
             pointer as usize * 4,
@@ -1144,8 +1118,11 @@ impl<'a> Tracer<'a> {
             fault,
         );
         let neg = p.neg;
-        let [t0, t1, t2, t3, t4] =
-            [0.0f32, 1.0, 2.0, 3.0, 4.0].map(|k| (pos + Vec3A::splat(k) - p.origin) * p.inv_dir);
+        let t0 = (pos - p.origin) * p.inv_dir;
+        let t1 = (pos + Vec3A::splat(1.0) - p.origin) * p.inv_dir;
+        let t2 = (pos + Vec3A::splat(2.0) - p.origin) * p.inv_dir;
+        let t3 = (pos + Vec3A::splat(3.0) - p.origin) * p.inv_dir;
+        let t4 = (pos + Vec3A::splat(4.0) - p.origin) * p.inv_dir;
         let t_enter = max(t0.max_element(), p.tmin);
         let t_exit = min(t4.min_element(), p.tmax);
         if t_enter > t_exit {

@@ -147,9 +147,12 @@ impl CameraFrame {
 
     /// All rays of a `width` x `height` image in tile order — square tiles
     /// of [`TILE`] x [`TILE`] pixels, tiles row by row from the top, pixels
-    /// row by row inside a tile — with the pixel index (`y * width + x`) of
-    /// each ray. Neighbouring rays then go in the same direction, so that the
-    /// tracer's batch API traces them as packets (see [`crate::Tracer`]).
+    /// in Z (Morton) order inside a tile — with the pixel index
+    /// (`y * width + x`) of each ray. Neighbouring rays then go in the same
+    /// direction, so that the tracer's batch API traces them as packets (see
+    /// [`crate::Tracer`]), and each run of 4, 8 or 16 rays of a tile is a
+    /// compact block of pixels (2×2, 4×2, 4×4), whose rays meet the same
+    /// nodes.
     pub fn rays_in_tiles(
         &self,
         width: u32,
@@ -161,8 +164,9 @@ impl CameraFrame {
         let mut pixels = Vec::with_capacity(count);
         for ty in (0..height).step_by(TILE as usize) {
             for tx in (0..width).step_by(TILE as usize) {
-                for y in ty..(ty + TILE).min(height) {
-                    for x in tx..(tx + TILE).min(width) {
+                for z in 0..TILE * TILE {
+                    let (x, y) = (tx + morton_even_bits(z), ty + morton_even_bits(z >> 1));
+                    if x < width && y < height {
                         rays.push(self.ray(x, y, width, height, level));
                         pixels.push(y * width + x);
                     }
@@ -176,6 +180,15 @@ impl CameraFrame {
     pub fn forward(&self) -> [f64; 3] {
         self.forward.to_array()
     }
+}
+
+/// The even bits of `z` (a Morton code), packed: the x of pixel `z` of a tile.
+fn morton_even_bits(z: u32) -> u32 {
+    let mut v = z & 0x5555_5555;
+    v = (v | v >> 1) & 0x3333_3333;
+    v = (v | v >> 2) & 0x0f0f_0f0f;
+    v = (v | v >> 4) & 0x00ff_00ff;
+    (v | v >> 8) & 0x0000_ffff
 }
 
 /// Edge in pixels of the square tiles of [`CameraFrame::rays_in_tiles`]: 64
@@ -217,4 +230,51 @@ pub fn occupied_box(dag: &Dag<'_>) -> Option<([f64; 3], [f64; 3])> {
         [0, 1, 2].map(|i| root_min[i] + f64::from(lo[i]) * cell),
         [0, 1, 2].map(|i| root_min[i] + f64::from(hi[i]) * cell),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiles_hold_every_pixel_once_in_z_order() {
+        let frame = Camera::looking_at_cube([0.0; 3], 1.0, 37.0 / 21.0)
+            .frame()
+            .expect("a valid camera");
+        // Partial tiles at the right and bottom edges too.
+        let (width, height) = (37, 21);
+        let (rays, pixels) = frame.rays_in_tiles(width, height, Some(3));
+        assert_eq!(rays.len(), pixels.len());
+        let mut seen = vec![false; (width * height) as usize];
+        for (ray, &pixel) in rays.iter().zip(&pixels) {
+            assert!(
+                !std::mem::replace(&mut seen[pixel as usize], true),
+                "pixel {pixel} twice"
+            );
+            assert_eq!(
+                *ray,
+                frame.ray(pixel % width, pixel / width, width, height, Some(3))
+            );
+        }
+        assert!(seen.iter().all(|&s| s), "every pixel has its ray");
+        // The first full tile: each run of 4 rays is a 2×2 block, of 16 a 4×4.
+        let xy = |i: usize| (pixels[i] % width, pixels[i] / width);
+        for start in (0..64).step_by(4) {
+            let (x0, y0) = xy(start);
+            assert_eq!((x0 % 2, y0 % 2), (0, 0));
+            let block: Vec<_> = (start..start + 4).map(xy).collect();
+            assert_eq!(
+                block,
+                [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)]
+            );
+        }
+        for start in (0..64).step_by(16) {
+            let (x0, y0) = xy(start);
+            assert!(
+                (start..start + 16)
+                    .map(xy)
+                    .all(|(x, y)| x / 4 == x0 / 4 && y / 4 == y0 / 4)
+            );
+        }
+    }
 }

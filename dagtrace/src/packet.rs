@@ -19,8 +19,10 @@
 //! 1. A packet is a run of consecutive rays with the same origin, `tmin`,
 //!    `tmax` and level of detail, whose direction components all have the
 //!    same signs and none is (treated as) zero, and whose directions spread
-//!    so little that the beam stays at most [`BEAM_WIDTH_CELLS`] cells of the
-//!    beam level wide across the cube (see [`Tracer::packet_len`]).
+//!    so little that the beam stays at most [`BEAM_WIDTH_CELLS`] cells of
+//!    32³ voxels wide across the cube (see [`Tracer::packet_shape`]). Its
+//!    rays form groups of [`GROUP_RAYS`] consecutive rays (a 4×2 block of
+//!    pixels in the Z order of [`crate::camera::CameraFrame::rays_in_tiles`]).
 //! 2. The *beam* of the packet is the set of lines from the common origin
 //!    whose inverse direction lies, per axis, between the smallest and the
 //!    largest of the packet's. A cell can be met by a ray of the packet only
@@ -32,14 +34,21 @@
 //!    can meet, in an order that is front to back for every one of them.
 //!    The test runs in `f64` on cells enlarged by far more than the `f32`
 //!    rounding of the per-ray traversal, so it never drops a cell that a ray's
-//!    own (rounded) test would enter.
-//! 3. Each ray is then traced, in that order, through the subtrees of the
-//!    listed cells that it meets itself (its own slab test, before any node
-//!    is read) with the very same steps as [`Tracer::trace`] (a [`Walk`]
-//!    whose `top` is the cell), several rays in flight at once; its first hit
-//!    is its answer, and a ray that meets none of them misses. The cells are
-//!    listed lazily, a few at a time, so that the beam walk stops as soon as
-//!    every ray of the packet has hit.
+//!    own (rounded) test would enter. The cells are listed lazily, a few at a
+//!    time, so that the beam walk stops as soon as every ray has hit, and
+//!    with the beam of the rays still looking.
+//! 3. A listed cell is first tested against the beam of each group (one
+//!    interval test for 8 rays); the rays of the groups that may meet it then
+//!    walk its subtree *together*: one depth-first walk in the octant's
+//!    child order, in which every node is read once and each ray that reached
+//!    it computes its own chain of children (the children it passes through)
+//!    from the very same plane parameters as [`Tracer::trace`], four rays at a
+//!    time in SIMD, the chain coming out as one bit mask of rays per child
+//!    ([`ChainTests`]). Each ray thus meets the nodes of its own traversal, in
+//!    its own front-to-back order, and the first voxel it finds in a brick
+//!    (read from the leaf mask, as by [`Tracer::trace`]) is its answer; a ray
+//!    that meets none in any listed cell misses. The children a node's rays
+//!    go on to are prefetched at the node's visit.
 //!
 //! The answers are those of [`Tracer::trace`] except where a ray passes
 //! exactly through an edge or corner shared by cells of the beam level: there
@@ -48,16 +57,26 @@
 //! Any fault (a pointer out of range) makes the packet fall back to ray-by-ray
 //! tracing, so errors are reported exactly as [`Tracer::trace`] reports them.
 
-use glam::Vec3A;
+use glam::{Vec3A, Vec4};
 
 use crate::tables::FIRST;
 use crate::tracer::{
-    Begun, Frame, LANES, LEVEL_SLOTS, Pending, Stack, Tracer, Walk, max, min, prefetch,
+    CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, prefetch,
 };
 use dagfmt::batch::{Hit, Ray};
 
 /// Most rays in one packet.
 pub(crate) const PACKET_RAYS: usize = 64;
+
+/// Rays per group of a packet: each group has its own beam too, tested
+/// against the cells of the packet's beam before its rays are.
+const GROUP_RAYS: usize = 8;
+
+/// Groups in a packet.
+const GROUPS: usize = PACKET_RAYS / GROUP_RAYS;
+
+/// The bits of the first group in a mask of rays.
+const GROUP_MASK: u64 = (1 << GROUP_RAYS) - 1;
 
 /// Fewest rays worth a beam pass.
 const MIN_PACKET_RAYS: usize = 8;
@@ -134,6 +153,58 @@ impl Beam {
         }
         enter <= exit
     }
+
+    /// The children in `mask` (file indices, for direction octant `neg`) of
+    /// the node of edge `size` at mirrored position `pos` that some line of the beam may
+    /// meet: [`Beam::meets`] for each of them, with the products of the
+    /// planes they share computed once (the very same expressions, so the
+    /// same answers).
+    #[inline]
+    fn children_met(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
+        let half = size * 0.5;
+        let mut near = [[0f64; 2]; 3];
+        let mut far = [[0f64; 2]; 3];
+        for a in 0..3 {
+            let mid = pos[a] + half;
+            let lo = [
+                pos[a] - self.margin - self.origin[a],
+                mid - self.margin - self.origin[a],
+            ];
+            let hi = [
+                mid + self.margin - self.origin[a],
+                mid + half + self.margin - self.origin[a],
+            ];
+            for k in 0..2 {
+                near[a][k] = lo[k]
+                    * if lo[k] >= 0.0 {
+                        self.inv_lo[a]
+                    } else {
+                        self.inv_hi[a]
+                    };
+                far[a][k] = hi[k]
+                    * if hi[k] >= 0.0 {
+                        self.inv_hi[a]
+                    } else {
+                        self.inv_lo[a]
+                    };
+            }
+        }
+        // No NaN here (finite beams, finite planes): plain comparisons.
+        let max = |a: f64, b: f64| if a > b { a } else { b };
+        let min = |a: f64, b: f64| if a < b { a } else { b };
+        let mut met = 0u8;
+        let mut children = mask;
+        while children != 0 {
+            let c = children.trailing_zeros() as usize;
+            children &= children - 1;
+            let m = c ^ neg;
+            let (x, y, z) = (m & 1, m >> 1 & 1, m >> 2 & 1);
+            let enter = max(max(self.tmin, near[0][x]), max(near[1][y], near[2][z]));
+            let exit = min(min(self.tmax, far[0][x]), min(far[1][y], far[2][z]));
+            met |= u8::from(enter <= exit) << c;
+        }
+        met
+    }
 }
 
 /// One node on the beam walk's path.
@@ -141,22 +212,126 @@ impl Beam {
 struct BeamFrame {
     word: u32,
     mask: u8,
-    /// Children not yet considered.
+    /// Children that the beam meets, not yet listed or walked.
     remaining: u8,
     /// Mirrored grid position of the node's lower corner.
     pos: [f64; 3],
 }
 
-/// One ray of a packet in flight: its walk through one cell of the beam.
+/// One node on a packet's walk of a beam cell's subtree.
 #[derive(Clone, Copy, Debug, Default)]
-struct PacketLane {
-    /// The ray's index in the packet.
-    ray: u8,
-    /// The cell walked, in this round's list.
-    cell: u8,
-    walk: Walk,
-    stack: Stack,
+struct SubtreeFrame {
+    word: u32,
+    mask: u8,
+    /// Children that some ray of the packet passes through, not yet visited.
+    remaining: u8,
+    /// Mirrored grid position of the node's lower corner.
+    pos: Vec3A,
+    /// Per child (file index): the rays that pass through it.
+    rays: [u64; 8],
+    /// Per child with rays: its pointer.
+    pointers: [u32; 8],
 }
+
+/// A packet found by [`Tracer::packet_shape`]: its length, and per group of
+/// [`GROUP_RAYS`] rays the range of `|d_a|` (empty, `lo > hi`, for groups
+/// past the end).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct PacketShape {
+    pub(crate) len: usize,
+    ranges: [(Vec3A, Vec3A); GROUPS],
+}
+
+/// The rays of a packet in the traversal's frame, four to a vector, for the
+/// visits of [`Tracer::visit_subtree_node`].
+#[derive(Clone, Copy, Debug, Default)]
+struct PacketLanes {
+    /// `1 / direction` per axis.
+    inv: [[Vec4; PACKET_RAYS / 4]; 3],
+    /// The rays' clipped `tmin` and `tmax`.
+    tmin: [Vec4; PACKET_RAYS / 4],
+    tmax: [Vec4; PACKET_RAYS / 4],
+}
+
+/// The comparisons that make a ray's chain of children in a node (see
+/// `tracer::chain`), one bit per ray of a packet.
+#[derive(Clone, Copy, Debug, Default)]
+struct ChainTests {
+    /// The ray's segment meets the node: `t_enter <= t_exit`.
+    inside: u64,
+    /// Per (mirrored) axis: the mid-plane is at or before the entry
+    /// (`t_mid <= t_enter`), so the ray starts in the upper half.
+    first: [u64; 3],
+    /// Per axis: `t_mid <= t_exit`.
+    before_exit: [u64; 3],
+    /// `t_mid.x < t_mid.y`, `t_mid.x < t_mid.z`, `t_mid.y < t_mid.z`.
+    order: [u64; 3],
+}
+
+impl ChainTests {
+    /// Whether `a`'s mid-plane crossing comes before `b`'s (`a != b`), in the
+    /// order of `tracer::CHAIN`: by parameter, ties to the higher axis.
+    #[inline(always)]
+    fn crosses_before(&self, a: usize, b: usize) -> u64 {
+        match (a, b) {
+            (0, 1) => self.order[0],
+            (1, 0) => !self.order[0],
+            (0, 2) => self.order[1],
+            (2, 0) => !self.order[1],
+            (1, 2) => self.order[2],
+            _ => !self.order[2],
+        }
+    }
+
+    /// The rays whose chain holds the child at mirrored index `m`: `m` is the
+    /// entry child plus the first crossings in order. Per axis `a` in `m`,
+    /// the ray reaches the upper half (`t_mid <= t_exit`); per axis not in
+    /// `m`, it enters in the lower half; and every crossing into `m` comes
+    /// before every crossing out of it (an axis not in `m` crossed in the
+    /// segment). One specialised formula per child, a few bitwise ANDs.
+    #[inline(always)]
+    fn through(&self, m: usize) -> u64 {
+        match m & 7 {
+            0 => self.through_child::<0>(),
+            1 => self.through_child::<1>(),
+            2 => self.through_child::<2>(),
+            3 => self.through_child::<3>(),
+            4 => self.through_child::<4>(),
+            5 => self.through_child::<5>(),
+            6 => self.through_child::<6>(),
+            _ => self.through_child::<7>(),
+        }
+    }
+
+    /// [`ChainTests::through`] for the child `M` (the loops unroll and the
+    /// tests on `M` fold away).
+    #[inline(always)]
+    fn through_child<const M: usize>(&self) -> u64 {
+        let mut rays = self.inside;
+        for a in 0..3 {
+            if M >> a & 1 == 1 {
+                rays &= self.before_exit[a];
+            } else {
+                rays &= !self.first[a];
+            }
+        }
+        for a in 0..3 {
+            if M >> a & 1 == 0 {
+                continue;
+            }
+            for b in 0..3 {
+                if M >> b & 1 == 0 {
+                    rays &= self.first[a] | !self.before_exit[b] | self.crosses_before(a, b);
+                }
+            }
+        }
+        rays
+    }
+}
+
+/// Levels of a beam cell's subtree above its bricks (the beam level is 5
+/// levels above the voxels, the bricks 2), rounded up to a power of two.
+const SUBTREE_SLOTS: usize = 4;
 
 /// The resumable depth-first beam walk.
 struct BeamWalk {
@@ -172,31 +347,43 @@ impl Tracer<'_> {
         if self.depth >= 9 { self.depth - 5 } else { 0 }
     }
 
-    /// Number of rays from the start of `rays` that form a packet (up to
-    /// [`PACKET_RAYS`]): the same origin, `tmin`, `tmax` and level (finer than
-    /// the beam level), and directions whose components are all far from zero
-    /// and of the same signs. 0 when there are fewer than [`MIN_PACKET_RAYS`].
+    /// The length of [`Tracer::packet_shape`].
+    #[cfg(test)]
     pub(crate) fn packet_len(&self, rays: &[Ray]) -> usize {
+        self.packet_shape(rays).len
+    }
+
+    /// The packet at the start of `rays`: the number of rays that form it (up
+    /// to [`PACKET_RAYS`]) — the same origin, `tmin`, `tmax` and level (finer
+    /// than the beam level), directions whose components are all far from
+    /// zero and of the same signs, and spread little (checked a group at a
+    /// time) — with the ranges of `|d_a|` of its groups, for the beams. The
+    /// length is 0 when fewer than [`MIN_PACKET_RAYS`] rays qualify. One pass
+    /// over the rays: it runs at every packet of a batch.
+    #[inline(never)]
+    pub(crate) fn packet_shape(&self, rays: &[Ray]) -> PacketShape {
+        let none = PacketShape {
+            len: 0,
+            ranges: [(Vec3A::INFINITY, Vec3A::ZERO); GROUPS],
+        };
         if self.beam_level() == 0 {
-            return 0;
+            return none;
         }
         let Some(first) = rays.first() else {
-            return 0;
+            return none;
         };
-        // The cheap tests first: this runs at every ray of a batch.
+        let same = |x: f32, y: f32| x.to_bits() == y.to_bits();
         let same_start = |r: &Ray| {
-            r.origin.map(f32::to_bits) == first.origin.map(f32::to_bits)
-                && r.tmin.to_bits() == first.tmin.to_bits()
-                && r.tmax.to_bits() == first.tmax.to_bits()
+            same(r.origin[0], first.origin[0])
+                && same(r.origin[1], first.origin[1])
+                && same(r.origin[2], first.origin[2])
+                && same(r.tmin, first.tmin)
+                && same(r.tmax, first.tmax)
                 && r.level == first.level
         };
-        let candidates = rays
-            .iter()
-            .take(PACKET_RAYS)
-            .take_while(|r| same_start(r))
-            .count();
-        if candidates < MIN_PACKET_RAYS {
-            return 0;
+        // Most batches that are not made of packets fail here, at once.
+        if rays.len() < MIN_PACKET_RAYS || !same_start(&rays[MIN_PACKET_RAYS - 1]) {
+            return none;
         }
         // Components treated as zero (or nearly) by the set-up, and NaNs,
         // keep a ray out of packets.
@@ -205,7 +392,7 @@ impl Tracer<'_> {
             largest.is_finite() && d.iter().all(|c| c.abs() > largest * 1e-6)
         };
         if !regular(first.dir) {
-            return 0;
+            return none;
         }
         // Rays of a coarser level of detail than the beam's cells, and rays
         // of an impossible level (an error, reported ray by ray), go alone.
@@ -213,13 +400,13 @@ impl Tracer<'_> {
             .level
             .is_some_and(|l| l <= self.beam_level() || l > self.depth)
         {
-            return 0;
+            return none;
         }
         // The beam must stay narrow: where it is many cells of the beam level
         // wide, every ray would be tested against all of them. Its width at
         // the far side of the cube is at most the spread of the directions
-        // (the chord between unit directions, about the angle) times the
-        // distance to the cube's farthest corner.
+        // (about the angle between them) times the distance to the cube's
+        // farthest corner.
         let resolution = f64::from(self.cell_size[0]);
         let origin: [f64; 3] =
             [0, 1, 2].map(|a| (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale);
@@ -229,33 +416,99 @@ impl Tracer<'_> {
             .map(|d| d * d)
             .sum::<f64>()
             .sqrt();
-        let cell = f64::from(self.cell_size[usize::from(self.beam_level())]);
+        let cell = f64::from(self.cell_size[usize::from(self.depth - 5)]);
         let max_spread = (BEAM_WIDTH_CELLS * cell / far.max(cell)) as f32;
-        let unit = |d: [f32; 3]| {
-            let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-            d.map(|c| c / length)
+        // The spread of the directions is that of their components: per
+        // axis, the range of |d_a| over the run, relative to the shortest
+        // |d|.
+        let spread_limit = max_spread * max_spread;
+        let a = first.dir;
+        let first_bits = [
+            first.origin[0],
+            first.origin[1],
+            first.origin[2],
+            first.tmin,
+            first.tmax,
+        ]
+        .map(f32::to_bits);
+        let mut shape = none;
+        // The ranges of |d_a| of the groups before the current one, and of
+        // the current one.
+        let mut before = (Vec3A::INFINITY, Vec3A::ZERO);
+        let mut group = before;
+        // Written so that a NaN fails.
+        let within = |lo: Vec3A, hi: Vec3A, d2: f32| {
+            let spread = (hi - lo).max_element();
+            spread * spread <= spread_limit * d2
         };
-        let axis = unit(first.dir);
-        let first_octant = octant(first.dir);
-        let coherent = |r: &Ray| {
-            let u = unit(r.dir);
-            let chord =
-                ((u[0] - axis[0]).powi(2) + (u[1] - axis[1]).powi(2) + (u[2] - axis[2]).powi(2))
-                    .sqrt();
-            regular(r.dir) && octant(r.dir) == first_octant && chord <= max_spread
-        };
-        let n = rays[..candidates]
-            .iter()
-            .take_while(|r| coherent(r))
-            .count();
-        if n >= MIN_PACKET_RAYS { n } else { 0 }
+        let mut shortest = f32::INFINITY;
+        let mut n = 0;
+        for r in rays.iter().take(PACKET_RAYS) {
+            // The same origin and bounds bit for bit, and the same signs of
+            // the direction (the same octant), in one test.
+            let bits = [r.origin[0], r.origin[1], r.origin[2], r.tmin, r.tmax].map(f32::to_bits);
+            let differ = (bits[0] ^ first_bits[0])
+                | (bits[1] ^ first_bits[1])
+                | (bits[2] ^ first_bits[2])
+                | (bits[3] ^ first_bits[3])
+                | (bits[4] ^ first_bits[4])
+                | ((r.dir[0].to_bits() ^ a[0].to_bits())
+                    | (r.dir[1].to_bits() ^ a[1].to_bits())
+                    | (r.dir[2].to_bits() ^ a[2].to_bits()))
+                    >> 31;
+            let d = Vec3A::from_array(r.dir);
+            let m = d.abs();
+            let d2 = d.length_squared();
+            let regular = m.min_element() > m.max_element() * 1e-6 && d2 < f32::INFINITY;
+            if differ != 0 || r.level != first.level || !regular {
+                break;
+            }
+            group = (group.0.min(m), group.1.max(m));
+            shortest = shortest.min(d2);
+            n += 1;
+            if n % GROUP_RAYS == 0 {
+                // The spread, checked a group at a time: a group that makes
+                // it too wide ends the packet before it.
+                let (lo, hi) = (before.0.min(group.0), before.1.max(group.1));
+                if !within(lo, hi, shortest) {
+                    n -= GROUP_RAYS;
+                    group = (Vec3A::INFINITY, Vec3A::ZERO);
+                    break;
+                }
+                shape.ranges[n / GROUP_RAYS - 1] = group;
+                before = (lo, hi);
+                group = (Vec3A::INFINITY, Vec3A::ZERO);
+            }
+        }
+        if n % GROUP_RAYS != 0 {
+            if within(before.0.min(group.0), before.1.max(group.1), shortest) {
+                shape.ranges[n / GROUP_RAYS] = group;
+            } else {
+                n -= n % GROUP_RAYS;
+            }
+        }
+        if n >= MIN_PACKET_RAYS {
+            shape.len = n;
+            shape
+        } else {
+            none
+        }
     }
 
-    /// Traces the packet `rays` (made by [`Tracer::packet_len`]) into `hits`.
-    /// Returns `false`, having written nothing that matters, when the packet
-    /// cannot be traced as one (a ray the set-up treats specially, or a fault
-    /// on the way): the caller then traces its rays one by one.
+    /// [`Tracer::trace_packet`] for tests: the packet's shape found here.
+    #[cfg(test)]
     pub(crate) fn try_packet(&self, rays: &[Ray], hits: &mut [Hit]) -> bool {
+        let shape = self.packet_shape(rays);
+        shape.len == rays.len() && self.trace_packet(rays, hits, &shape)
+    }
+
+    /// Traces the packet `rays` (of `shape`, made by [`Tracer::packet_shape`])
+    /// into `hits`. Returns `false`, having written nothing that matters,
+    /// when the packet cannot be traced as one (a ray the set-up treats
+    /// specially, or a fault on the way): the caller then traces its rays one
+    /// by one.
+    #[inline(never)]
+    pub(crate) fn trace_packet(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
         let beam_level = self.beam_level();
         let n = rays.len().min(hits.len()).min(PACKET_RAYS);
         if n == 0 || self.empty {
@@ -264,7 +517,7 @@ impl Tracer<'_> {
         let rays = &rays[..n];
         // The beam first: most packets of a camera meet nothing, and then no
         // ray needs even its set-up.
-        let Some(beam) = self.beam(rays) else {
+        let Some((mut beam, groups)) = self.beams(&rays[0], &shape.ranges) else {
             return false;
         };
         let neg = octant(rays[0].dir);
@@ -272,14 +525,15 @@ impl Tracer<'_> {
             frames: [BeamFrame::default(); LEVEL_SLOTS],
             level: None,
         };
-        if beam.meets([0.0; 3], f64::from(self.cell_size[0])) {
+        let root_size = f64::from(self.cell_size[0]);
+        if beam.meets([0.0; 3], root_size) {
             let Ok(header) = self.levels[0].header(0, 0) else {
                 return false;
             };
             walk.frames[0] = BeamFrame {
                 word: 0,
                 mask: header as u8,
-                remaining: header as u8,
+                remaining: beam.children_met(header as u8, [0.0; 3], root_size, neg),
                 pos: [0.0; 3],
             };
             walk.level = Some(0);
@@ -296,108 +550,100 @@ impl Tracer<'_> {
             hits[..n].fill(Hit::MISS);
             return true;
         }
+        // The set-up of every ray, as `Tracer::setup` does it, with what the
+        // rays share done once. Anything it would treat specially sends the
+        // packet back to the ray-by-ray path.
+        let first = &rays[0];
+        let level = first.level.unwrap_or(self.depth);
+        let resolution = f64::from(self.cell_size[0]);
+        let origin =
+            [0, 1, 2].map(|a| (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale);
+        let (tmin, tmax) = (f64::from(first.tmin), f64::from(first.tmax));
+        let usual = origin.iter().all(|o| o.abs() <= resolution * 16.0)
+            && tmin <= tmax
+            && level > beam_level
+            && level <= self.depth;
+        if !usual {
+            return false;
+        }
+        let stop = level.min(self.leaf_level);
         let mut walks = [Walk::default(); PACKET_RAYS];
-        // Rays still looking for their first hit.
-        let mut active = [0u8; PACKET_RAYS];
-        let mut active_count = 0;
-        let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
-        for i in 0..n {
-            let mut fault = None;
-            let Ok(begun) = self.begin(&rays[i], &mut stack, &mut fault) else {
-                return false;
-            };
-            if fault.is_some() {
-                return false;
-            }
-            match begun {
-                Begun::Done(hit) => hits[i] = hit,
-                Begun::Walk(walk) => {
-                    // The subtree walks start below the beam level, in the
-                    // frame the beam was computed in.
-                    if walk.stop <= beam_level
-                        || walk.q.base != 0.0
-                        || !walk.q.moving.all()
-                        || walk.q.neg != neg
-                    {
+        // Rays still looking for their first hit, one bit per ray.
+        let mut alive = 0u64;
+        for (i, ray) in rays.iter().enumerate() {
+            match self.packet_ray(origin, ray.dir, [tmin, tmax], level) {
+                Err(()) => return false,
+                Ok(None) => hits[i] = Hit::MISS,
+                Ok(Some((q, ray_tmin))) => {
+                    if q.neg != neg {
                         return false;
                     }
-                    walks[i] = walk;
-                    active[active_count] = i as u8;
-                    active_count += 1;
+                    walks[i & (PACKET_RAYS - 1)] = Walk {
+                        q,
+                        ray_tmin,
+                        stop,
+                        ..Walk::default()
+                    };
+                    alive |= 1 << i;
                 }
             }
         }
         let beam_size = self.cell_size[usize::from(beam_level)];
-        let mut lanes = [PacketLane::default(); LANES];
-        while active_count > 0 && listed > 0 {
-            let round = &cells[..listed];
-            // Every active ray through this round's cells, several in flight
-            // at once (as in `Tracer::trace_lanes`): `lanes[..busy]` each walk
-            // one ray through one cell; `next` is the next ray to start.
-            let mut next = 0;
-            let mut busy = 0;
-            let mut done = [false; PACKET_RAYS];
-            loop {
-                while busy < LANES && next < active_count {
-                    let i = usize::from(active[next]);
-                    next += 1;
-                    let lane = &mut lanes[busy];
-                    lane.ray = i as u8;
-                    lane.cell = 0;
-                    if self.enter_cell(&walks[i], round, beam_size, beam_level, lane) {
-                        busy += 1;
-                    }
-                }
-                if busy == 0 {
+        let mut lanes = PacketLanes::default();
+        let mut set = alive;
+        while set != 0 {
+            let i = set.trailing_zeros() as usize & (PACKET_RAYS - 1);
+            set &= set - 1;
+            let q = &walks[i].q;
+            let (k, lane) = (i / 4, i % 4);
+            for a in 0..3 {
+                lanes.inv[a][k][lane] = q.inv_dir[a];
+            }
+            lanes.tmin[k][lane] = q.tmin;
+            lanes.tmax[k][lane] = q.tmax;
+        }
+        while alive != 0 && listed > 0 {
+            for cell in &cells[..listed] {
+                if alive == 0 {
                     break;
                 }
-                let mut k = 0;
-                while k < busy {
-                    let lane = &mut lanes[k];
-                    let mut fault = None;
-                    let step = self.resume(&mut lane.walk, &mut lane.stack, &mut fault);
-                    if fault.is_some() {
-                        return false;
+                // The rays of the groups whose beam meets the cell: most rays
+                // of a packet miss most of its cells, and one group's beam
+                // test saves the slab tests of its rays.
+                let pos = cell.pos.to_array().map(f64::from);
+                let mut rays = 0u64;
+                for (g, group) in groups.iter().enumerate() {
+                    let members = alive & (GROUP_MASK << (g * GROUP_RAYS));
+                    if members != 0 && group.meets(pos, f64::from(beam_size)) {
+                        rays |= members;
                     }
-                    match step {
-                        None => k += 1,
-                        Some(Some(cell)) => {
-                            let i = usize::from(lane.ray);
-                            let b = usize::from(beam_level);
-                            let path = round[usize::from(lane.cell)].path;
-                            lane.stack[..b].copy_from_slice(&paths[path..path + b]);
-                            match self.finish(&walks[i].ray(), Some(cell), &lane.stack, None) {
-                                Ok(hit) => hits[i] = hit,
-                                Err(_) => return false,
-                            }
-                            done[i] = true;
-                            busy -= 1;
-                            lanes.swap(k, busy);
-                        }
-                        Some(None) => {
-                            // Nothing in this cell: on to the ray's next one.
-                            let i = usize::from(lane.ray);
-                            lane.cell += 1;
-                            if self.enter_cell(&walks[i], round, beam_size, beam_level, lane) {
-                                k += 1;
-                            } else {
-                                busy -= 1;
-                                lanes.swap(k, busy);
-                            }
+                }
+                if rays == 0 {
+                    continue;
+                }
+                let path = &paths[cell.path..cell.path + usize::from(beam_level)];
+                if self
+                    .walk_cell(
+                        cell, beam_level, path, &walks, &lanes, rays, &mut alive, hits,
+                    )
+                    .is_err()
+                {
+                    return false;
+                }
+            }
+            if alive != 0 {
+                // The beam of the rays still looking: narrower, so the rest
+                // of the walk lists fewer cells (it only ever drops cells).
+                beam.inv_lo = [f64::INFINITY; 3];
+                beam.inv_hi = [0.0; 3];
+                for (g, group) in groups.iter().enumerate() {
+                    if alive & (GROUP_MASK << (g * GROUP_RAYS)) != 0 {
+                        for a in 0..3 {
+                            beam.inv_lo[a] = beam.inv_lo[a].min(group.inv_lo[a]);
+                            beam.inv_hi[a] = beam.inv_hi[a].max(group.inv_hi[a]);
                         }
                     }
                 }
-            }
-            // The rays that hit are answered; the others go on to the next round.
-            let mut kept = 0;
-            for k in 0..active_count {
-                if !done[usize::from(active[k])] {
-                    active[kept] = active[k];
-                    kept += 1;
-                }
-            }
-            active_count = kept;
-            if active_count > 0 {
                 listed = match self
                     .next_cells(&beam, neg, beam_level, &mut walk, &mut cells, &mut paths)
                 {
@@ -406,50 +652,271 @@ impl Tracer<'_> {
                 };
             }
         }
-        for &i in &active[..active_count] {
-            hits[usize::from(i)] = Hit::MISS;
+        let mut missed = alive;
+        while missed != 0 {
+            hits[missed.trailing_zeros() as usize] = Hit::MISS;
+            missed &= missed - 1;
         }
         true
     }
 
-    /// Starts `lane`'s walk through the first of `cells[lane.cell..]` that
-    /// the ray `walk` meets (the slab test its visit starts with, done here
-    /// before the cell's header is read: most rays of a packet miss most of
-    /// its cells). `false` when it meets none of them.
+    /// The set-up of a ray of a packet whose grid origin is `origin` (not
+    /// far: no re-basing), as [`Tracer::setup`] and [`Tracer::start`] do it:
+    /// the prepared ray clipped to the occupied box and its own `tmin`, or
+    /// `None` when it misses the box. `Err` for a direction the set-up
+    /// treats specially (a component treated as zero, or none finite).
     #[inline(always)]
-    fn enter_cell(
+    pub(crate) fn packet_ray(
         &self,
-        walk: &Walk,
-        cells: &[BeamCell],
-        size: f32,
+        origin: [f64; 3],
+        dir: [f32; 3],
+        bounds: [f64; 2],
         level: u8,
-        lane: &mut PacketLane,
-    ) -> bool {
-        let q = &walk.q;
-        while let Some(cell) = cells.get(usize::from(lane.cell)) {
-            let t_lo = (cell.pos - q.origin) * q.inv_dir;
-            let t_hi = (cell.pos + Vec3A::splat(size) - q.origin) * q.inv_dir;
-            if max(t_lo.max_element(), q.tmin) <= min(t_hi.min_element(), q.tmax) {
-                lane.walk = Walk {
-                    top: level,
-                    level,
-                    pending: Pending::Node,
-                    pos: cell.pos,
-                    size,
-                    target: cell.word,
-                    ..*walk
-                };
-                return true;
-            }
-            lane.cell += 1;
+    ) -> Result<Option<(Prepared, f32)>, ()> {
+        let dir = dir.map(|d| f64::from(d) * self.grid_scale);
+        let largest = dir[0].abs().max(dir[1].abs()).max(dir[2].abs());
+        let regular = largest.is_finite()
+            && largest >= f64::MIN_POSITIVE
+            && dir.iter().all(|d| d.abs() >= largest * TINY_DIRECTION);
+        if !regular {
+            return Err(());
         }
-        false
+        let p = self.prepare(origin, dir, largest, [true; 3], bounds, 0.0, level);
+        Ok(self.clip(&p).map(|q| (q, p.tmin)))
     }
 
-    /// The beam of the active rays of a packet, or `None` when it has no
-    /// finite extent (which [`Tracer::packet_len`] rules out).
-    fn beam(&self, rays: &[Ray]) -> Option<Beam> {
-        let first = &rays[0];
+    /// Walks the subtree of the beam cell `cell` for the rays of `alive`
+    /// (bits of `walks`) at once: one depth-first walk, in the front-to-back
+    /// child order of the packet's octant, that visits the nodes any of them
+    /// passes through. At each node every ray that reached it computes its
+    /// own chain of children, with the very numbers [`Tracer::resume`] uses,
+    /// so each ray sees the nodes of its own traversal in its own order, and
+    /// its first occupied cell is its answer: it is written to `hits` and its
+    /// bit cleared from `alive`. `path` holds the nodes above the cell.
+    /// `Err` on a read out of range.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(never)]
+    fn walk_cell(
+        &self,
+        cell: &BeamCell,
+        beam_level: u8,
+        path: &[Frame],
+        walks: &[Walk; PACKET_RAYS],
+        lanes: &PacketLanes,
+        rays: u64,
+        alive: &mut u64,
+        hits: &mut [Hit],
+    ) -> Result<(), ()> {
+        let first = &walks[rays.trailing_zeros() as usize & (PACKET_RAYS - 1)];
+        let (origin, neg) = (first.q.origin, first.q.neg & 7);
+        let (stop, ray_level) = (first.stop, first.q.level);
+        let mut frames = [SubtreeFrame::default(); SUBTREE_SLOTS];
+        let mut size = self.cell_size[usize::from(beam_level)];
+        let mut level = beam_level;
+        let mut top = 0;
+        self.visit_subtree_node(
+            &mut frames[0],
+            level,
+            cell.word,
+            cell.pos,
+            size,
+            rays,
+            lanes,
+            origin,
+            neg,
+            self.children_at(level + 1, stop, ray_level),
+        )?;
+        loop {
+            let frame = &mut frames[top & (SUBTREE_SLOTS - 1)];
+            if frame.remaining == 0 {
+                if top == 0 {
+                    return Ok(());
+                }
+                top -= 1;
+                level -= 1;
+                size *= 2.0;
+                continue;
+            }
+            let child = FIRST[neg][usize::from(frame.remaining)];
+            frame.remaining &= !(1 << child);
+            let child_rays = frame.rays[usize::from(child) & 7] & *alive;
+            if child_rays == 0 {
+                continue;
+            }
+            let pos = frame.pos;
+            let pointer = frame.pointers[usize::from(child) & 7];
+            let half = size * 0.5;
+            let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
+            let child_level = level + 1;
+            if child_level < stop {
+                top += 1;
+                self.visit_subtree_node(
+                    &mut frames[top & (SUBTREE_SLOTS - 1)],
+                    child_level,
+                    pointer,
+                    child_pos,
+                    half,
+                    child_rays,
+                    lanes,
+                    origin,
+                    neg,
+                    self.children_at(child_level + 1, stop, ray_level),
+                )?;
+                level = child_level;
+                size = half;
+                continue;
+            }
+            // The stop level: the cell itself, or its brick's first voxel.
+            let mut m = child_rays;
+            while m != 0 {
+                let r = m.trailing_zeros() as usize & (PACKET_RAYS - 1);
+                m &= m - 1;
+                let found = if stop == ray_level {
+                    Some((child_pos, child_level))
+                } else {
+                    let mut fault = None;
+                    let found = self.brick(&walks[r].q, pointer, child_pos, &mut fault);
+                    if fault.is_some() {
+                        return Err(());
+                    }
+                    found
+                };
+                let Some((cell_pos, cell_level)) = found else {
+                    continue;
+                };
+                let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
+                stack[..path.len()].copy_from_slice(path);
+                for (k, f) in frames[..=top].iter().enumerate() {
+                    stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = Frame {
+                        word: f.word,
+                        mask: f.mask,
+                        ..Frame::default()
+                    };
+                }
+                hits[r] = self
+                    .finish(
+                        &walks[r].ray(),
+                        Some((cell_pos, cell_level, pointer)),
+                        &stack,
+                        None,
+                    )
+                    .map_err(|_| ())?;
+                *alive &= !(1 << r);
+            }
+        }
+    }
+
+    /// Where the nodes of `level` are read, for prefetching, and their record
+    /// size: the node level, the leaf masks for the bricks below the stop
+    /// level, or nothing when the walk stops there.
+    #[inline(always)]
+    fn children_at(&self, level: u8, stop: u8, ray_level: u8) -> (&[u8], usize) {
+        if level < stop {
+            (self.levels[usize::from(level) & (LEVEL_SLOTS - 1)].bytes, 4)
+        } else if stop != ray_level {
+            (
+                self.levels[usize::from(self.leaf_level) & (LEVEL_SLOTS - 1)].bytes,
+                8,
+            )
+        } else {
+            (&[], 0)
+        }
+    }
+
+    /// The visit of a node of a cell's subtree by the rays `rays` of a
+    /// packet: the rays that pass through each child, as each ray's own
+    /// traversal would find them ([`Tracer::resume`]: the chain of children
+    /// from the same plane parameters), four rays at a time.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn visit_subtree_node(
+        &self,
+        frame: &mut SubtreeFrame,
+        level: u8,
+        word: u32,
+        pos: Vec3A,
+        size: f32,
+        rays: u64,
+        lanes: &PacketLanes,
+        origin: Vec3A,
+        neg: usize,
+        children_at: (&[u8], usize),
+    ) -> Result<(), ()> {
+        let header = self.levels[usize::from(level) & (LEVEL_SLOTS - 1)]
+            .header(level, word)
+            .map_err(|_| ())?;
+        let mask = header as u8;
+        // The plane offsets are common to the packet (one origin); the same
+        // operations as `resume`, so the same roundings.
+        let d_lo = (pos - origin).to_array().map(Vec4::splat);
+        let d_mid = (pos + Vec3A::splat(size * 0.5) - origin)
+            .to_array()
+            .map(Vec4::splat);
+        let d_hi = (pos + Vec3A::splat(size) - origin)
+            .to_array()
+            .map(Vec4::splat);
+        let mut tests = ChainTests::default();
+        let mut groups = rays;
+        while groups != 0 {
+            let g = groups.trailing_zeros() as usize / 4;
+            groups &= !(0xf << (4 * g));
+            let k = g & (PACKET_RAYS / 4 - 1);
+            let inv = [lanes.inv[0][k], lanes.inv[1][k], lanes.inv[2][k]];
+            let t_lo: [Vec4; 3] = std::array::from_fn(|a| d_lo[a] * inv[a]);
+            let t_mid: [Vec4; 3] = std::array::from_fn(|a| d_mid[a] * inv[a]);
+            let t_hi: [Vec4; 3] = std::array::from_fn(|a| d_hi[a] * inv[a]);
+            let enter = t_lo[0].max(t_lo[1]).max(t_lo[2]).max(lanes.tmin[k]);
+            let exit = t_hi[0].min(t_hi[1]).min(t_hi[2]).min(lanes.tmax[k]);
+            let shift = 4 * g;
+            let bits = |m: glam::BVec4A| u64::from(m.bitmask()) << shift;
+            tests.inside |= bits(enter.cmple(exit));
+            for (a, t) in t_mid.iter().enumerate() {
+                tests.first[a] |= bits(t.cmple(enter));
+                tests.before_exit[a] |= bits(t.cmple(exit));
+            }
+            tests.order[0] |= bits(t_mid[0].cmplt(t_mid[1]));
+            tests.order[1] |= bits(t_mid[0].cmplt(t_mid[2]));
+            tests.order[2] |= bits(t_mid[1].cmplt(t_mid[2]));
+        }
+        tests.inside &= rays;
+        // Only the entries of the children with rays are ever read.
+        frame.word = word;
+        frame.mask = mask;
+        frame.remaining = 0;
+        frame.pos = pos;
+        if tests.inside != 0 {
+            let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
+            let (child_bytes, record) = children_at;
+            let mut children = mask;
+            while children != 0 {
+                let c = children.trailing_zeros() as usize & 7;
+                children &= children - 1;
+                let through = tests.through(c ^ neg);
+                if through != 0 {
+                    // The children are read soon, and most miss the cache:
+                    // start all their reads now.
+                    let rank = (mask & ((1u8 << c) - 1)).count_ones();
+                    let pointer = section.pointer(level, word, rank).map_err(|_| ())?;
+                    prefetch(child_bytes, pointer as usize * record);
+                    frame.rays[c] = through;
+                    frame.pointers[c] = pointer;
+                    frame.remaining |= 1 << c;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The beam of the rays of a packet, and the beams of its groups of
+    /// [`GROUP_RAYS`] consecutive rays (`groups[g]` for `rays[8g..8g + 8]`),
+    /// or `None` when they have no finite extent (which
+    /// [`Tracer::packet_shape`] rules out).
+    #[inline(never)]
+    fn beams(
+        &self,
+        first: &Ray,
+        ranges: &[(Vec3A, Vec3A); GROUPS],
+    ) -> Option<(Beam, [Beam; GROUPS])> {
         let resolution = f64::from(self.cell_size[0]);
         let mut origin = [0f64; 3];
         for (a, o) in origin.iter_mut().enumerate() {
@@ -460,29 +927,38 @@ impl Tracer<'_> {
                 g
             };
         }
-        let mut inv_lo = [f64::INFINITY; 3];
-        let mut inv_hi = [0f64; 3];
-        for ray in rays {
-            for a in 0..3 {
-                // Grid units per unit of the ray's parameter t.
-                let inv = 1.0 / (f64::from(ray.dir[a]) * self.grid_scale).abs();
-                inv_lo[a] = inv_lo[a].min(inv);
-                inv_hi[a] = inv_hi[a].max(inv);
-            }
-        }
         let scale = resolution.max(origin.iter().fold(0f64, |m, o| m.max(o.abs())));
-        let beam = Beam {
+        let empty = Beam {
             origin,
-            inv_lo,
-            inv_hi,
+            inv_lo: [f64::INFINITY; 3],
+            inv_hi: [0.0; 3],
             tmin: f64::from(first.tmin),
             tmax: f64::from(first.tmax),
             // Enlarge by the rounding margin, and by the one of the `f64`
             // arithmetic here (far smaller).
             margin: scale * BEAM_MARGIN,
         };
-        let finite = inv_hi.iter().all(|v| v.is_finite()) && origin.iter().all(|v| v.is_finite());
-        finite.then_some(beam)
+        let mut beam = empty;
+        let mut groups = [empty; GROUPS];
+        for (group, &(d_lo, d_hi)) in groups.iter_mut().zip(ranges) {
+            if d_lo.x > d_hi.x {
+                // A group without rays: a beam that meets nothing.
+                continue;
+            }
+            // Grid units per unit of the ray's parameter t, 1 / |d_a|: its
+            // range over the group from the range of |d_a| (a correctly
+            // rounded division and the scaling by the grid are monotonic,
+            // so this is exactly the range of the rays' own quotients).
+            for a in 0..3 {
+                group.inv_lo[a] = 1.0 / (f64::from(d_hi[a]) * self.grid_scale);
+                group.inv_hi[a] = 1.0 / (f64::from(d_lo[a]) * self.grid_scale);
+                beam.inv_lo[a] = beam.inv_lo[a].min(group.inv_lo[a]);
+                beam.inv_hi[a] = beam.inv_hi[a].max(group.inv_hi[a]);
+            }
+        }
+        let finite =
+            beam.inv_hi.iter().all(|v| v.is_finite()) && origin.iter().all(|v| v.is_finite());
+        finite.then_some((beam, groups))
     }
 
     /// Advances the beam walk to the next (up to [`CELLS_PER_ROUND`]) cells
@@ -518,9 +994,6 @@ impl Tracer<'_> {
                 frame.pos[1] + (m >> 1 & 1) as f64 * half,
                 frame.pos[2] + (m >> 2 & 1) as f64 * half,
             ];
-            if !beam.meets(pos, half) {
-                continue;
-            }
             let rank = (frame.mask & ((1u8 << child) - 1)).count_ones();
             let pointer = self.levels[l]
                 .pointer(level, frame.word, rank)
@@ -549,7 +1022,7 @@ impl Tracer<'_> {
             walk.frames[l + 1] = BeamFrame {
                 word: pointer,
                 mask: header as u8,
-                remaining: header as u8,
+                remaining: beam.children_met(header as u8, pos, half, neg),
                 pos,
             };
             walk.level = Some(level + 1);
@@ -561,6 +1034,7 @@ impl Tracer<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::tracer::Setup;
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
@@ -760,5 +1234,108 @@ mod tests {
             errors > 0,
             "some corruption must lead a pointer out of range"
         );
+    }
+
+    #[test]
+    fn chain_tests_give_the_chains_of_the_table() {
+        // Every arrangement of the three mid-plane crossings and the
+        // segment's ends on a small grid of parameters, ties included.
+        let values = [0.0f32, 1.0, 2.0, 3.0, 4.0];
+        let mut arrangements = 0;
+        for neg in 0..8 {
+            for &x in &values {
+                for &y in &values {
+                    for &z in &values {
+                        for &enter in &values {
+                            for &exit in values.iter().filter(|&&e| e >= enter) {
+                                let t_mid = Vec3A::new(x, y, z);
+                                let expected = crate::tracer::chain(neg, enter, exit, t_mid);
+                                let m = [x, y, z];
+                                let bit = |b: bool| u64::from(b);
+                                let tests = ChainTests {
+                                    inside: 1,
+                                    first: m.map(|t| bit(t <= enter)),
+                                    before_exit: m.map(|t| bit(t <= exit)),
+                                    order: [bit(x < y), bit(x < z), bit(y < z)],
+                                };
+                                for c in 0..8 {
+                                    assert_eq!(
+                                        tests.through(c ^ neg) & 1,
+                                        u64::from(expected >> c & 1),
+                                        "child {c}, octant {neg}, t_mid {m:?}, [{enter}, {exit}]"
+                                    );
+                                }
+                                arrangements += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(arrangements, 8 * 125 * 15);
+    }
+
+    #[test]
+    fn beam_children_are_the_children_the_beam_meets() {
+        let mut rng = Rng(23);
+        for _ in 0..2000 {
+            let unit = |rng: &mut Rng| f64::from(rng.unit());
+            let inv_lo = [0; 3].map(|_| 0.5 + unit(&mut rng));
+            let beam = Beam {
+                origin: [0; 3].map(|_| unit(&mut rng) * 300.0 - 100.0),
+                inv_lo,
+                inv_hi: inv_lo.map(|v| v * (1.0 + 0.2 * unit(&mut rng))),
+                tmin: unit(&mut rng) * 10.0,
+                tmax: if rng.next().is_multiple_of(3) {
+                    f64::INFINITY
+                } else {
+                    40.0 + unit(&mut rng) * 200.0
+                },
+                margin: 1.0 / 64.0,
+            };
+            let size = f64::from(1u32 << (rng.next() % 7));
+            let pos = [0; 3].map(|_| (rng.next() % 16) as f64 * size);
+            let mask = rng.next() as u8;
+            let neg = (rng.next() % 8) as usize;
+            let met = beam.children_met(mask, pos, size, neg);
+            for c in 0..8 {
+                let m = c ^ neg;
+                let half = size * 0.5;
+                let child = [0, 1, 2].map(|a| pos[a] + (m >> a & 1) as f64 * half);
+                let expected = mask >> c & 1 == 1 && beam.meets(child, half);
+                assert_eq!(met >> c & 1 == 1, expected, "child {c} of {pos:?} ({size})");
+            }
+        }
+    }
+
+    #[test]
+    fn packet_set_up_is_the_set_up_of_each_ray() {
+        let mut rng = Rng(29);
+        let (bytes, centres) = scene(&mut rng);
+        let dag = Dag::open(&bytes).unwrap();
+        let tracer = Tracer::new(&dag).unwrap();
+        let rays = packets(&mut rng, &centres, 40, PACKET_RAYS);
+        let mut compared = 0;
+        for ray in &rays {
+            let level = ray.level.unwrap_or(tracer.depth);
+            let origin = [0, 1, 2]
+                .map(|a| (f64::from(ray.origin[a]) - tracer.root_min[a]) * tracer.grid_scale);
+            let bounds = [f64::from(ray.tmin), f64::from(ray.tmax)];
+            let Ok(Setup::Trace(p)) = tracer.setup(ray) else {
+                continue;
+            };
+            if p.base != 0.0 {
+                // Far origins are re-based: never in packets.
+                continue;
+            }
+            let expected = tracer.clip(&p).map(|q| (q, p.tmin));
+            assert_eq!(
+                tracer.packet_ray(origin, ray.dir, bounds, level),
+                Ok(expected),
+                "{ray:?}"
+            );
+            compared += 1;
+        }
+        assert!(compared > rays.len() / 2, "{compared} rays compared");
     }
 }

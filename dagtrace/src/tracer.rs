@@ -86,7 +86,7 @@ const BOUNDS_LEVEL: u8 = 6;
 
 /// Direction given to axes whose direction is (treated as) zero, relative to a
 /// largest component in `[1, 2)`.
-const TINY_DIRECTION: f64 = 1.0 / (1u64 << 60) as f64;
+pub(crate) const TINY_DIRECTION: f64 = 1.0 / (1u64 << 60) as f64;
 
 /// Why a ray could not be traced.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -255,7 +255,7 @@ pub(crate) struct Frame {
 pub(crate) type Stack = [Frame; LEVEL_SLOTS];
 
 /// The ray in the traversal's f32 mirrored grid frame.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct Prepared {
     /// Origin (mirrored, re-based, grid units).
     pub(crate) origin: Vec3A,
@@ -349,7 +349,7 @@ pub(crate) enum Begun {
 }
 
 /// What set-up decided about a ray.
-enum Setup {
+pub(crate) enum Setup {
     Miss,
     /// Direction zero: the answer is the cell of `level` holding the grid
     /// point `origin`, if occupied, entered at `tmin` from inside.
@@ -379,7 +379,7 @@ struct Found {
 pub struct Tracer<'a> {
     pub(crate) levels: [Level<'a>; LEVEL_SLOTS],
     pub(crate) depth: u8,
-    leaf_level: u8,
+    pub(crate) leaf_level: u8,
     pub(crate) empty: bool,
     attribute_kind: AttributeKind,
     pub(crate) root_min: [f64; 3],
@@ -571,13 +571,14 @@ impl<'a> Tracer<'a> {
         let mut i = 0;
         let mut run = 0;
         while i < count {
-            let n = self.packet_len(&rays[i..count]);
+            let shape = self.packet_shape(&rays[i..count]);
+            let n = shape.len;
             if n == 0 {
                 i += 1;
                 continue;
             }
             self.trace_lanes(&rays[run..i], &mut hits[run..i])?;
-            if !self.try_packet(&rays[i..i + n], &mut hits[i..i + n]) {
+            if !self.trace_packet(&rays[i..i + n], &mut hits[i..i + n], &shape) {
                 self.trace_lanes(&rays[i..i + n], &mut hits[i..i + n])?;
             }
             i += n;
@@ -765,7 +766,7 @@ impl<'a> Tracer<'a> {
     /// Always inlined: returning the prepared ray through memory costs a
     /// store-forwarding stall larger than the whole set-up.
     #[inline(always)]
-    fn setup(&self, ray: &Ray) -> Result<Setup, TraceError> {
+    pub(crate) fn setup(&self, ray: &Ray) -> Result<Setup, TraceError> {
         let level = match ray.level {
             None => self.depth,
             Some(l) if l <= self.depth => l,
@@ -828,6 +829,35 @@ impl<'a> Tracer<'a> {
             tmin -= base;
             tmax -= base;
         }
+        Ok(Setup::Trace(self.prepare(
+            origin,
+            dir,
+            largest,
+            moving,
+            [tmin, tmax],
+            base,
+            level,
+        )))
+    }
+
+    /// The end of [`Tracer::setup`] for a ray that is traced: scaled,
+    /// mirrored and rounded to the traversal's f32 frame. `dir` has its
+    /// (treated as) zero components zeroed; `largest` is its largest
+    /// magnitude; `bounds` are `tmin` and `tmax` re-based by `base`.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    pub(crate) fn prepare(
+        &self,
+        origin: [f64; 3],
+        dir: [f64; 3],
+        largest: f64,
+        moving: [bool; 3],
+        bounds: [f64; 2],
+        base: f64,
+        level: u8,
+    ) -> Prepared {
+        let [tmin, tmax] = bounds;
+        let resolution = (1u64 << self.depth) as f64;
         // Scale the direction by a power of two (exact) so that its largest
         // component lies in [1, 2): t' = (t - base) * scale.
         let scale_bits = largest.to_bits() & 0x7ff0_0000_0000_0000;
@@ -865,7 +895,7 @@ impl<'a> Tracer<'a> {
                 inverse[i] as f32
             };
         }
-        Ok(Setup::Trace(Prepared {
+        Prepared {
             origin: Vec3A::from_array(o32),
             inv_dir: Vec3A::from_array(inv32),
             tmin: (tmin * scale) as f32,
@@ -875,7 +905,7 @@ impl<'a> Tracer<'a> {
             level,
             inv_scale,
             base,
-        }))
+        }
     }
 
     /// The front-to-back traversal. Returns the first occupied cell at the
@@ -916,30 +946,17 @@ impl<'a> Tracer<'a> {
     #[inline(always)]
     fn start(&self, p: &Prepared, fault: &mut Option<Fault>) -> Result<Walk, Option<Cell>> {
         let leaf_level = self.leaf_level;
-        let (origin, inv_dir) = (p.origin, p.inv_dir);
         let root_size = self.cell_size[0];
         // Clip the segment to the box of the occupied cells (to the cube for
         // rays coarser than the box's cells): a ray that misses it misses
         // everything. The clipped bounds drive the traversal; `p` keeps the
         // ray's own `tmin` for the entry face of the answer.
-        let (lo, hi) = if p.level >= self.bounds_level {
-            self.bounds[p.neg & 7]
-        } else {
-            (Vec3A::ZERO, Vec3A::splat(root_size))
-        };
-        let enter = max(((lo - origin) * inv_dir).max_element(), p.tmin);
-        let exit = min(((hi - origin) * inv_dir).min_element(), p.tmax);
-        if enter > exit {
+        let Some(q) = self.clip(p) else {
             return Err(None);
-        }
+        };
         if p.level == 0 {
             return Err(Some((Vec3A::ZERO, 0, 0)));
         }
-        let q = Prepared {
-            tmin: enter,
-            tmax: exit,
-            ..*p
-        };
         if leaf_level == 0 {
             return Err(self
                 .brick(&q, 0, Vec3A::ZERO, fault)
@@ -958,6 +975,25 @@ impl<'a> Tracer<'a> {
             size: root_size,
             target: 0,
             brick_pos: Vec3A::ZERO,
+        })
+    }
+
+    /// `p` with its segment clipped to the box of the occupied cells (to the
+    /// cube for rays coarser than the box's cells), or `None` when it misses
+    /// the box: a ray that misses it misses everything.
+    #[inline(always)]
+    pub(crate) fn clip(&self, p: &Prepared) -> Option<Prepared> {
+        let (lo, hi) = if p.level >= self.bounds_level {
+            self.bounds[p.neg & 7]
+        } else {
+            (Vec3A::ZERO, Vec3A::splat(self.cell_size[0]))
+        };
+        let enter = max(((lo - p.origin) * p.inv_dir).max_element(), p.tmin);
+        let exit = min(((hi - p.origin) * p.inv_dir).min_element(), p.tmax);
+        (enter <= exit).then_some(Prepared {
+            tmin: enter,
+            tmax: exit,
+            ..*p
         })
     }
 
@@ -1105,7 +1141,7 @@ impl<'a> Tracer<'a> {
     /// position `pos`, answered from the leaf mask alone. Returns the cell's
     /// mirrored position and level.
     #[inline(always)]
-    fn brick(
+    pub(crate) fn brick(
         &self,
         p: &Prepared,
         leaf: u32,
@@ -1283,7 +1319,7 @@ fn child_at(cell: [u32; 3], shift: u8) -> u32 {
 /// The chain of children (file frame mask) a ray passes through inside a node
 /// entered at `t_enter` and left at `t_exit`, whose mid-planes it crosses at `t_mid`.
 #[inline(always)]
-fn chain(neg: usize, t_enter: f32, t_exit: f32, t_mid: Vec3A) -> u8 {
+pub(crate) fn chain(neg: usize, t_enter: f32, t_exit: f32, t_mid: Vec3A) -> u8 {
     let enter = Vec3A::splat(t_enter);
     let exit = Vec3A::splat(t_exit);
     let first = t_mid.cmple(enter).bitmask();
@@ -1334,7 +1370,7 @@ pub(crate) fn min(a: f32, b: f32) -> f32 {
 }
 
 /// Unit steps to the eight children, by child index (x, y, z = bits 0, 1, 2).
-const CHILD_STEPS: [Vec3A; 8] = {
+pub(crate) const CHILD_STEPS: [Vec3A; 8] = {
     let mut t = [Vec3A::ZERO; 8];
     let mut c = 0;
     while c < 8 {

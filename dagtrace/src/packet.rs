@@ -130,11 +130,18 @@ impl Beam {
     /// `pos` (interval slab test on the enlarged cube).
     #[inline]
     fn meets(&self, pos: [f64; 3], size: f64) -> bool {
+        self.meets_box(pos, pos.map(|p| p + size))
+    }
+
+    /// Whether some line of the beam may meet the box from `lower` to
+    /// `upper` (the same test, on the enlarged box).
+    #[inline]
+    fn meets_box(&self, lower: [f64; 3], upper: [f64; 3]) -> bool {
         let mut enter = self.tmin;
         let mut exit = self.tmax;
-        for (a, &p) in pos.iter().enumerate() {
-            let lo = p - self.margin - self.origin[a];
-            let hi = p + size + self.margin - self.origin[a];
+        for a in 0..3 {
+            let lo = lower[a] - self.margin - self.origin[a];
+            let hi = upper[a] + self.margin - self.origin[a];
             // The smallest entry and the largest exit over the beam's lines.
             let near = lo
                 * if lo >= 0.0 {
@@ -526,7 +533,14 @@ impl Tracer<'_> {
             level: None,
         };
         let root_size = f64::from(self.cell_size[0]);
-        if beam.meets([0.0; 3], root_size) {
+        // Every occupied cell lies in the box of the occupied cells of the
+        // tracer's bounds level: most beams that miss the object miss it.
+        let (lower, upper) = self.bounds[neg];
+        let near_object = beam.meets_box(
+            lower.to_array().map(f64::from),
+            upper.to_array().map(f64::from),
+        );
+        if near_object && beam.meets([0.0; 3], root_size) {
             let Ok(header) = self.levels[0].header(0, 0) else {
                 return false;
             };

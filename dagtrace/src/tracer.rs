@@ -396,7 +396,7 @@ pub struct Tracer<'a> {
     /// Per direction octant: the box (grid units, mirrored frame) of the
     /// occupied cells of `bounds_level`. Rays are clipped to it before the
     /// traversal: most rays that miss the object never reach the root node.
-    bounds: [(Vec3A, Vec3A); 8],
+    pub(crate) bounds: [(Vec3A, Vec3A); 8],
 }
 
 impl<'a> Tracer<'a> {

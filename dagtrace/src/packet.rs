@@ -35,8 +35,7 @@
 //!    The test runs in `f64` on cells enlarged by far more than the `f32`
 //!    rounding of the per-ray traversal, so it never drops a cell that a ray's
 //!    own (rounded) test would enter. The cells are listed lazily, a few at a
-//!    time, so that the beam walk stops as soon as every ray has hit, and
-//!    with the beam of the rays still looking.
+//!    time, so that the beam walk stops as soon as every ray has hit.
 //! 3. A listed cell is first tested against the beam of each group (one
 //!    interval test for 16 rays); the rays of the groups that may meet it then
 //!    walk its subtree *together*: one depth-first walk in the octant's
@@ -142,25 +141,32 @@ impl Beam {
         let mut enter = self.tmin;
         let mut exit = self.tmax;
         for a in 0..3 {
-            let lo = lower[a] - self.margin - self.origin[a];
-            let hi = upper[a] + self.margin - self.origin[a];
-            // The smallest entry and the largest exit over the beam's lines.
-            let near = lo
-                * if lo >= 0.0 {
-                    self.inv_lo[a]
-                } else {
-                    self.inv_hi[a]
-                };
-            let far = hi
-                * if hi >= 0.0 {
-                    self.inv_hi[a]
-                } else {
-                    self.inv_lo[a]
-                };
-            enter = enter.max(near);
-            exit = exit.min(far);
+            enter = enter.max(self.near(a, lower[a] - self.margin - self.origin[a]));
+            exit = exit.min(self.far(a, upper[a] + self.margin - self.origin[a]));
         }
         enter <= exit
+    }
+
+    /// The smallest parameter over the beam's lines at which axis `a` reaches
+    /// the plane at offset `lo` from the origin (a box's entry plane).
+    #[inline(always)]
+    fn near(&self, a: usize, lo: f64) -> f64 {
+        lo * if lo >= 0.0 {
+            self.inv_lo[a]
+        } else {
+            self.inv_hi[a]
+        }
+    }
+
+    /// The largest parameter over the beam's lines at which axis `a` reaches
+    /// the plane at offset `hi` from the origin (a box's exit plane).
+    #[inline(always)]
+    fn far(&self, a: usize, hi: f64) -> f64 {
+        hi * if hi >= 0.0 {
+            self.inv_hi[a]
+        } else {
+            self.inv_lo[a]
+        }
     }
 
     /// The children in `mask` (file indices, for direction octant `neg`) of
@@ -184,18 +190,8 @@ impl Beam {
                 mid + half + self.margin - self.origin[a],
             ];
             for k in 0..2 {
-                near[a][k] = lo[k]
-                    * if lo[k] >= 0.0 {
-                        self.inv_lo[a]
-                    } else {
-                        self.inv_hi[a]
-                    };
-                far[a][k] = hi[k]
-                    * if hi[k] >= 0.0 {
-                        self.inv_hi[a]
-                    } else {
-                        self.inv_lo[a]
-                    };
+                near[a][k] = self.near(a, lo[k]);
+                far[a][k] = self.far(a, hi[k]);
             }
         }
         // No NaN here (finite beams, finite planes): plain comparisons.
@@ -249,6 +245,8 @@ struct SubtreeFrame {
 pub(crate) struct PacketShape {
     pub(crate) len: usize,
     ranges: [(Vec3A, Vec3A); GROUPS],
+    /// The rays' common origin in grid units (not mirrored).
+    origin: [f64; 3],
 }
 
 /// The rays of a packet in the traversal's frame, four to a vector, for the
@@ -374,6 +372,7 @@ impl Tracer<'_> {
         let none = PacketShape {
             len: 0,
             ranges: [(Vec3A::INFINITY, Vec3A::ZERO); GROUPS],
+            origin: [0.0; 3],
         };
         if self.beam_level() == 0 {
             return none;
@@ -392,15 +391,6 @@ impl Tracer<'_> {
         };
         // Most batches that are not made of packets fail here, at once.
         if rays.len() < MIN_PACKET_RAYS || !same_start(&rays[MIN_PACKET_RAYS - 1]) {
-            return none;
-        }
-        // Components treated as zero (or nearly) by the set-up, and NaNs,
-        // keep a ray out of packets.
-        let regular = |d: [f32; 3]| {
-            let largest = d[0].abs().max(d[1].abs()).max(d[2].abs());
-            largest.is_finite() && d.iter().all(|c| c.abs() > largest * 1e-6)
-        };
-        if !regular(first.dir) {
             return none;
         }
         // Rays of a coarser level of detail than the beam's cells, and rays
@@ -440,7 +430,7 @@ impl Tracer<'_> {
             first.tmax,
         ]
         .map(f32::to_bits);
-        let mut shape = none;
+        let mut shape = PacketShape { origin, ..none };
         // The ranges of |d_a| of the groups before the current one, and of
         // the current one.
         let mut before = (Vec3A::INFINITY, Vec3A::ZERO);
@@ -468,6 +458,8 @@ impl Tracer<'_> {
             let d = Vec3A::from_array(r.dir);
             let m = d.abs();
             let d2 = d.length_squared();
+            // Components treated as zero (or nearly) by the set-up, and NaNs
+            // and infinities, keep a ray out of packets.
             let regular = m.min_element() > m.max_element() * 1e-6 && d2 < f32::INFINITY;
             if differ != 0 || r.level != first.level || !regular {
                 break;
@@ -526,7 +518,7 @@ impl Tracer<'_> {
         let rays = &rays[..n];
         // The beam first: most packets of a camera meet nothing, and then no
         // ray needs even its set-up.
-        let Some((mut beam, groups)) = self.beams(&rays[0], &shape.ranges) else {
+        let Some((beam, groups)) = self.beams(&rays[0], shape) else {
             return false;
         };
         let neg = octant(rays[0].dir);
@@ -572,8 +564,7 @@ impl Tracer<'_> {
         let first = &rays[0];
         let level = first.level.unwrap_or(self.depth);
         let resolution = f64::from(self.cell_size[0]);
-        let origin =
-            [0, 1, 2].map(|a| (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale);
+        let origin = shape.origin;
         let (tmin, tmax) = (f64::from(first.tmin), f64::from(first.tmax));
         let usual = origin.iter().all(|o| o.abs() <= resolution * 16.0)
             && tmin <= tmax
@@ -648,18 +639,6 @@ impl Tracer<'_> {
                 }
             }
             if alive != 0 {
-                // The beam of the rays still looking: narrower, so the rest
-                // of the walk lists fewer cells (it only ever drops cells).
-                beam.inv_lo = [f64::INFINITY; 3];
-                beam.inv_hi = [0.0; 3];
-                for (g, group) in groups.iter().enumerate() {
-                    if alive & (GROUP_MASK << (g * GROUP_RAYS)) != 0 {
-                        for a in 0..3 {
-                            beam.inv_lo[a] = beam.inv_lo[a].min(group.inv_lo[a]);
-                            beam.inv_hi[a] = beam.inv_hi[a].max(group.inv_hi[a]);
-                        }
-                    }
-                }
                 listed = match self
                     .next_cells(&beam, neg, beam_level, &mut walk, &mut cells, &mut paths)
                 {
@@ -701,8 +680,8 @@ impl Tracer<'_> {
         Ok(self.clip(&p).map(|q| (q, p.tmin)))
     }
 
-    /// Walks the subtree of the beam cell `cell` for the rays of `alive`
-    /// (bits of `walks`) at once: one depth-first walk, in the front-to-back
+    /// Walks the subtree of the beam cell `cell` for the rays `rays` (bits of
+    /// `walks`, all still in `alive`) at once: one depth-first walk, in the front-to-back
     /// child order of the packet's octant, that visits the nodes any of them
     /// passes through. At each node every ray that reached it computes its
     /// own chain of children, with the very numbers [`Tracer::resume`] uses,
@@ -928,20 +907,13 @@ impl Tracer<'_> {
     /// or `None` when they have no finite extent (which
     /// [`Tracer::packet_shape`] rules out).
     #[inline(never)]
-    fn beams(
-        &self,
-        first: &Ray,
-        ranges: &[(Vec3A, Vec3A); GROUPS],
-    ) -> Option<(Beam, [Beam; GROUPS])> {
+    fn beams(&self, first: &Ray, shape: &PacketShape) -> Option<(Beam, [Beam; GROUPS])> {
         let resolution = f64::from(self.cell_size[0]);
-        let mut origin = [0f64; 3];
+        let mut origin = shape.origin;
         for (a, o) in origin.iter_mut().enumerate() {
-            let g = (f64::from(first.origin[a]) - self.root_min[a]) * self.grid_scale;
-            *o = if octant(first.dir) >> a & 1 == 1 {
-                resolution - g
-            } else {
-                g
-            };
+            if octant(first.dir) >> a & 1 == 1 {
+                *o = resolution - *o;
+            }
         }
         let scale = resolution.max(origin.iter().fold(0f64, |m, o| m.max(o.abs())));
         let empty = Beam {
@@ -956,7 +928,7 @@ impl Tracer<'_> {
         };
         let mut beam = empty;
         let mut groups = [empty; GROUPS];
-        for (group, &(d_lo, d_hi)) in groups.iter_mut().zip(ranges) {
+        for (group, &(d_lo, d_hi)) in groups.iter_mut().zip(&shape.ranges) {
             if d_lo.x > d_hi.x {
                 // A group without rays: a beam that meets nothing.
                 continue;

@@ -405,43 +405,8 @@ fn a_bad_tmp_dir_is_refused_before_any_work() {
     box_mesh([0.0; 3], [1.0; 3]).write(&obj);
     let out = d.join("out.vdag");
     let missing = d.join("no-such-dir");
-    let msg = one_line_error(
-        &[
-            "convert",
-            s(&obj),
-            "-o",
-            s(&out),
-            "--depth",
-            "6",
-            "--tmp-dir",
-            s(&missing),
-        ],
-        1,
-    );
-    assert!(
-        msg.contains("does not exist") && msg.contains(s(&missing)),
-        "{msg}"
-    );
-    let msg = one_line_error(
-        &[
-            "convert",
-            s(&obj),
-            "-o",
-            s(&out),
-            "--depth",
-            "6",
-            "--tmp-dir",
-            s(&obj),
-        ],
-        1,
-    );
-    assert!(
-        msg.contains("not a directory") && msg.contains(s(&obj)),
-        "{msg}"
-    );
-    // A directory nobody can create files in (root included).
-    if Path::new("/proc/self").is_dir() {
-        let msg = one_line_error(
+    let refused = |tmp: &str| {
+        one_line_error(
             &[
                 "convert",
                 s(&obj),
@@ -450,10 +415,24 @@ fn a_bad_tmp_dir_is_refused_before_any_work() {
                 "--depth",
                 "6",
                 "--tmp-dir",
-                "/proc",
+                tmp,
             ],
             1,
-        );
+        )
+    };
+    let msg = refused(s(&missing));
+    assert!(
+        msg.contains("does not exist") && msg.contains(s(&missing)),
+        "{msg}"
+    );
+    let msg = refused(s(&obj));
+    assert!(
+        msg.contains("not a directory") && msg.contains(s(&obj)),
+        "{msg}"
+    );
+    // A directory nobody can create files in (root included).
+    if Path::new("/proc/self").is_dir() {
+        let msg = refused("/proc");
         assert!(
             msg.contains("cannot create temporary files in /proc"),
             "{msg}"

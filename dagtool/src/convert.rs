@@ -662,6 +662,13 @@ fn convert_mesh(
             .warnings
             .push(format!("{w}; voxels without a material are white"));
     }
+    if opts.colors {
+        for w in &mesh.texture_warnings {
+            summary
+                .warnings
+                .push(format!("{w}; its voxels take the material's Kd"));
+        }
+    }
     let solid = if opts.solid {
         let closed = snapped.is_closed();
         summary.closed = Some(closed);
@@ -776,6 +783,7 @@ fn convert_mesh(
         ProgressBar::hidden()
     };
     let shift = cfg.brick_shift();
+    let voxel_size = mapping.root_size / (1u64 << depth) as f64;
     let mut rgba: Vec<u8> = Vec::new();
     let report = pipeline::run(
         &snapped,
@@ -790,12 +798,37 @@ fn convert_mesh(
                 }
                 if let Some(colors) = &mut colors {
                     rgba.clear();
-                    for &t in &out.tags {
-                        rgba.extend_from_slice(&if t == NO_TAG {
-                            DEFAULT_COLOR
-                        } else {
-                            mesh.triangle_color(t as usize)
-                        });
+                    if mesh.has_textures() {
+                        // Textured triangles need each voxel's centre: the
+                        // tags follow the bricks' set bits in Morton order.
+                        let mut tags = out.tags.iter();
+                        for &(brick, mask) in &out.bricks {
+                            let code = (base | u64::from(brick)) << 6;
+                            let mut bits = mask;
+                            while bits != 0 {
+                                let voxel =
+                                    dagfmt::morton::decode(code | u64::from(bits.trailing_zeros()));
+                                bits &= bits - 1;
+                                let t = tags.next().copied().unwrap_or(NO_TAG);
+                                rgba.extend_from_slice(&if t == NO_TAG {
+                                    DEFAULT_COLOR
+                                } else {
+                                    let centre = [0, 1, 2].map(|a| {
+                                        mapping.root_min[a]
+                                            + (f64::from(voxel[a]) + 0.5) * voxel_size
+                                    });
+                                    mesh.voxel_color(t as usize, centre)
+                                });
+                            }
+                        }
+                    } else {
+                        for &t in &out.tags {
+                            rgba.extend_from_slice(&if t == NO_TAG {
+                                DEFAULT_COLOR
+                            } else {
+                                mesh.triangle_color(t as usize)
+                            });
+                        }
                     }
                     colors.write(&rgba)?;
                 }

@@ -13,7 +13,8 @@ use dagtool::sysinfo::parse_size;
 const CONVERT_HELP: &str = "\
 INPUTS
   Wavefront OBJ (.obj): every model and group; polygons are triangulated as fans;
-  points and lines become zero-area triangles. Materials (Kd) are read for --colors.
+  points and lines become zero-area triangles. Materials (Kd, d, map_Kd) are read
+  for --colors.
 
   Text voxel list (.txt, .xyz, .voxels): one voxel per line, `x y z` as unsigned
   integers; `#` starts a comment; blank lines are ignored. Without --depth the
@@ -49,8 +50,14 @@ ATTRIBUTES
   Nodes store subtree voxel counts (attribute kind 1). --colors adds a colour
   section: each surface voxel takes the diffuse colour (Kd, alpha from d) of
   the lowest-numbered triangle touching it; voxels with no material and
-  interior voxels of --solid are white. Colours take 4 bytes per voxel; beyond
-  1/16 of --memory-limit (at most 256 MiB) they are streamed to a temporary file.
+  interior voxels of --solid are white. When the material has a diffuse
+  texture (map_Kd: PNG, JPEG, TGA or BMP, relative to the OBJ's folder; the last
+  word of the statement, `\\` read as `/`) and the triangle has texture
+  coordinates, the voxel takes the texel nearest to the texture coordinates of
+  the triangle's point closest to the voxel centre (repeating outside [0, 1)),
+  times Kd; a texture that cannot be read is a warning and its material keeps
+  Kd. Colours take 4 bytes per voxel; beyond 1/16 of --memory-limit (at most
+  256 MiB) they are streamed to a temporary file.
 
 MEMORY, TEMPORARY FILES AND OUTPUT
   The volume is processed in chunks of 128^3 voxels in Morton order on all cores.
@@ -209,7 +216,7 @@ struct ConvertArgs {
     /// Fill the interior (see below for open meshes).
     #[arg(long)]
     solid: bool,
-    /// Store per-voxel colours from the OBJ materials (diffuse Kd).
+    /// Store per-voxel colours from the OBJ materials (diffuse Kd and map_Kd textures).
     #[arg(long)]
     colors: bool,
     /// Input format.

@@ -20,8 +20,142 @@ pub struct Mesh {
     pub triangle_material: Vec<u32>,
     /// The diffuse colour (`Kd`) of each material, as RGBA8.
     pub colors: Vec<[u8; 4]>,
+    /// The diffuse texture (`map_Kd`) of each material that has one and whose
+    /// image could be read (indexed like `colors`; empty when none has one).
+    pub textures: Vec<Option<Texture>>,
+    /// Texture coordinates (`vt`) of the file.
+    pub texcoords: Vec<[f64; 2]>,
+    /// Indices into `texcoords` of each triangle's corners (`u32::MAX` for a
+    /// triangle without them). Empty unless some material has a texture, so
+    /// untextured meshes pay nothing.
+    pub triangle_texcoords: Vec<[u32; 3]>,
     /// A problem with the materials that did not stop loading (e.g. a missing `.mtl`).
     pub material_warning: Option<String>,
+    /// Textures that could not be read (their materials fall back to `Kd`).
+    pub texture_warnings: Vec<String>,
+}
+
+/// A material's diffuse texture (`map_Kd`), decoded to RGBA8, rows from the
+/// top of the image.
+#[derive(Clone, Debug)]
+pub struct Texture {
+    width: u32,
+    height: u32,
+    rgba: Vec<u8>,
+}
+
+impl Texture {
+    /// A texture of `width` x `height` texels from their RGBA8 bytes, rows
+    /// from the top; `None` when the sizes do not match or it is empty.
+    pub fn from_rgba(width: u32, height: u32, rgba: Vec<u8>) -> Option<Texture> {
+        let texels = u64::from(width) * u64::from(height);
+        (texels > 0 && rgba.len() as u64 == texels * 4).then_some(Texture {
+            width,
+            height,
+            rgba,
+        })
+    }
+
+    /// Reads an image file (PNG, JPEG, TGA or BMP).
+    pub fn load(path: &Path) -> Result<Texture, String> {
+        let image = image::ImageReader::open(path)
+            .map_err(|e| e.to_string())?
+            .with_guessed_format()
+            .map_err(|e| e.to_string())?
+            .decode()
+            .map_err(|e| e.to_string())?
+            .into_rgba8();
+        let (width, height) = image.dimensions();
+        Texture::from_rgba(width, height, image.into_raw()).ok_or_else(|| "empty image".into())
+    }
+
+    /// The texel at texture coordinates `uv`: the nearest one, the texture
+    /// repeating outside `[0, 1)` (`v` runs up the image, as in OBJ).
+    pub fn sample(&self, uv: [f64; 2]) -> [u8; 4] {
+        let wrap = |c: f64| if c.is_finite() { c - c.floor() } else { 0.0 };
+        let (u, v) = (wrap(uv[0]), wrap(uv[1]));
+        let x = ((u * f64::from(self.width)) as u32).min(self.width - 1);
+        let y = (((1.0 - v) * f64::from(self.height)) as u32).min(self.height - 1);
+        let at = (y as usize * self.width as usize + x as usize) * 4;
+        [
+            self.rgba[at],
+            self.rgba[at + 1],
+            self.rgba[at + 2],
+            self.rgba[at + 3],
+        ]
+    }
+}
+
+/// Where a material's `map_Kd` file is, relative to the OBJ's directory: the
+/// name as written, else its last word (the name follows any options such as
+/// `-s 1 1 1`), with `\\` read as `/` (files exported on Windows).
+fn texture_path(dir: &Path, name: &str) -> std::path::PathBuf {
+    let last = name.split_whitespace().last().unwrap_or(name);
+    let candidates = [
+        name,
+        last,
+        &name.replace('\\', "/"),
+        &last.replace('\\', "/"),
+    ]
+    .map(|n| dir.join(n));
+    candidates
+        .iter()
+        .find(|c| c.is_file())
+        .unwrap_or(&candidates[0])
+        .clone()
+}
+
+/// Barycentric weights of the point of triangle `v` closest to `p` (Ericson,
+/// *Real-Time Collision Detection*, 5.1.5); degenerate triangles give the
+/// weights of one of their closest points.
+fn closest_barycentric(p: [f64; 3], v: [[f64; 3]; 3]) -> [f64; 3] {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let [a, b, c] = v;
+    let (ab, ac) = (sub(b, a), sub(c, a));
+    let ap = sub(p, a);
+    let (d1, d2) = (dot(ab, ap), dot(ac, ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return [1.0, 0.0, 0.0];
+    }
+    let bp = sub(p, b);
+    let (d3, d4) = (dot(ab, bp), dot(ac, bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return [0.0, 1.0, 0.0];
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let s = d1 / (d1 - d3);
+        return [1.0 - s, s, 0.0];
+    }
+    let cp = sub(p, c);
+    let (d5, d6) = (dot(ab, cp), dot(ac, cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return [0.0, 0.0, 1.0];
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let s = d2 / (d2 - d6);
+        return [1.0 - s, 0.0, s];
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0 {
+        let s = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        return [0.0, 1.0 - s, s];
+    }
+    let inv = 1.0 / (va + vb + vc);
+    let (s, t) = (vb * inv, vc * inv);
+    if s.is_finite() && t.is_finite() {
+        [1.0 - s - t, s, t]
+    } else {
+        [1.0, 0.0, 0.0]
+    }
+}
+
+/// A texel tinted by a colour, channel by channel (`map_Kd` times `Kd`, the
+/// texel's alpha times `d`).
+fn modulate(texel: [u8; 4], tint: [u8; 4]) -> [u8; 4] {
+    [0, 1, 2, 3].map(|i| ((u16::from(texel[i]) * u16::from(tint[i]) + 127) / 255) as u8)
 }
 
 impl Mesh {
@@ -64,7 +198,7 @@ impl Mesh {
             )
         });
         guarded.check(&name)?;
-        Self::from_tobj(loaded, &name)
+        Self::from_tobj(loaded, &name, path.parent())
     }
 
     /// Loads an OBJ held in memory, like [`Mesh::load_obj`] but without
@@ -77,11 +211,16 @@ impl Mesh {
             Err(tobj::LoadError::OpenFileFailed)
         });
         guarded.check(name)?;
-        Self::from_tobj(loaded, name)
+        Self::from_tobj(loaded, name, None)
     }
 
-    /// The mesh of what tobj loaded from `name`.
-    fn from_tobj(loaded: tobj::LoadResult, name: &str) -> Result<Mesh, ConvertError> {
+    /// The mesh of what tobj loaded from `name`; textures are read from
+    /// `texture_dir` (none without it).
+    fn from_tobj(
+        loaded: tobj::LoadResult,
+        name: &str,
+        texture_dir: Option<&Path>,
+    ) -> Result<Mesh, ConvertError> {
         let (models, materials) =
             loaded.map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
         let mut mesh = Mesh::default();
@@ -100,11 +239,30 @@ impl Mesh {
                         None => DEFAULT_COLOR,
                     })
                     .collect();
+                if let Some(dir) = texture_dir {
+                    mesh.textures = materials
+                        .iter()
+                        .map(|m| {
+                            let file = m.diffuse_texture.as_deref()?;
+                            let path = texture_path(dir, file);
+                            Texture::load(&path)
+                                .map_err(|e| {
+                                    mesh.texture_warnings.push(format!(
+                                        "texture {} of material {} not loaded ({e})",
+                                        path.display(),
+                                        m.name
+                                    ))
+                                })
+                                .ok()
+                        })
+                        .collect();
+                }
             }
             Err(e) => {
                 mesh.material_warning = Some(format!("materials not loaded ({e})"));
             }
         }
+        let textured = mesh.textures.iter().any(Option::is_some);
         for model in &models {
             let m = &model.mesh;
             let base = mesh.vertices.len();
@@ -127,6 +285,27 @@ impl Mesh {
                     .push([t[0], t[1], t[2]].map(|i| i + base as u32));
                 mesh.triangle_material.push(material);
             }
+            if textured {
+                // tobj keeps one texture index per position index when the
+                // faces have them (and none otherwise).
+                let uv_base = mesh.texcoords.len() as u32;
+                mesh.texcoords.extend(
+                    m.texcoords
+                        .chunks_exact(2)
+                        .map(|c| [f64::from(c[0]), f64::from(c[1])]),
+                );
+                let count = m.indices.len() / 3;
+                if m.texcoord_indices.len() == m.indices.len() {
+                    mesh.triangle_texcoords.extend(
+                        m.texcoord_indices
+                            .chunks_exact(3)
+                            .map(|t| [t[0], t[1], t[2]].map(|i| i.saturating_add(uv_base))),
+                    );
+                } else {
+                    mesh.triangle_texcoords
+                        .extend(std::iter::repeat_n([u32::MAX; 3], count));
+                }
+            }
         }
         Ok(mesh)
     }
@@ -138,6 +317,43 @@ impl Mesh {
             .get(m as usize)
             .copied()
             .unwrap_or(DEFAULT_COLOR)
+    }
+
+    /// Whether some triangle takes its colour from a texture (so that
+    /// [`Mesh::voxel_color`] needs the voxel's position).
+    pub fn has_textures(&self) -> bool {
+        !self.triangle_texcoords.is_empty()
+    }
+
+    /// The colour of a voxel set by triangle `t`, whose centre is at `p`
+    /// (world space): the texel of the material's texture at the point of the
+    /// triangle closest to `p`, times `Kd`; the triangle's colour
+    /// ([`Mesh::triangle_color`]) without a texture or texture coordinates.
+    pub fn voxel_color(&self, t: usize, p: [f64; 3]) -> [u8; 4] {
+        let tint = self.triangle_color(t);
+        let m = self.triangle_material[t] as usize;
+        let (Some(Some(texture)), Some(corners)) =
+            (self.textures.get(m), self.triangle_texcoords.get(t))
+        else {
+            return tint;
+        };
+        let mut uv = [[0.0; 2]; 3];
+        for (k, &i) in corners.iter().enumerate() {
+            match self.texcoords.get(i as usize) {
+                Some(&c) => uv[k] = c,
+                None => return tint,
+            }
+        }
+        let mut v = [[0.0; 3]; 3];
+        for (k, &i) in self.triangles[t].iter().enumerate() {
+            match self.vertices.get(i as usize) {
+                Some(&c) => v[k] = c,
+                None => return tint,
+            }
+        }
+        let w = closest_barycentric(p, v);
+        let at = [0, 1].map(|a| w[0] * uv[0][a] + w[1] * uv[1][a] + w[2] * uv[2][a]);
+        modulate(texture.sample(at), tint)
     }
 
     /// Checks that the mesh can be voxelized: it has triangles, every vertex

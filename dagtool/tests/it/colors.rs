@@ -1,5 +1,7 @@
 //! `--colors`: per-voxel material colours in dense (Morton) order.
 
+use std::path::{Path, PathBuf};
+
 use crate::common::{convert, voxel_codes};
 use crate::reference;
 
@@ -95,4 +97,150 @@ fn solid_interior_is_white() {
     // The centre voxel is interior (white).
     let i = dag.voxel_index(16, 16, 16).unwrap().expect("centre is set") as usize;
     assert_eq!(colors[4 * i..4 * i + 4], [255; 4]);
+}
+
+/// A 4 x 4 square (slightly folded along its diagonal) whose texture
+/// coordinates map it into the middle of a 2 x 2 texture.
+const TEXTURED_OBJ: &str = "\
+mtllib t.mtl
+v 0 0 0
+v 4 0 0
+v 0 4 0
+v 4 4 0.5
+vt 0.1 0.1
+vt 0.9 0.1
+vt 0.1 0.9
+vt 0.9 0.9
+usemtl checker
+f 1/1 2/2 3/3
+f 2/2 4/4 3/3
+";
+
+/// The 2 x 2 texture, rows from the top of the image.
+const TEXELS: [[[u8; 4]; 2]; 2] = [
+    [[255, 0, 0, 255], [0, 255, 0, 255]],
+    [[0, 0, 255, 255], [255, 255, 255, 128]],
+];
+
+fn textured_square(dir: &Path, map_kd: &str) -> PathBuf {
+    let obj = dir.join("t.obj");
+    std::fs::write(&obj, TEXTURED_OBJ).unwrap();
+    std::fs::write(
+        dir.join("t.mtl"),
+        format!("newmtl checker\nKd 1 0.5 1\nmap_Kd {map_kd}\n"),
+    )
+    .unwrap();
+    std::fs::create_dir_all(dir.join("tex")).unwrap();
+    let mut image = image::RgbaImage::new(2, 2);
+    for (y, row) in TEXELS.iter().enumerate() {
+        for (x, texel) in row.iter().enumerate() {
+            image.put_pixel(x as u32, y as u32, image::Rgba(*texel));
+        }
+    }
+    image.save(dir.join("tex/checker.png")).unwrap();
+    obj
+}
+
+/// The point of triangle `v` nearest to `p`, by brute force over a fine grid
+/// of barycentric samples: its weights.
+fn nearest_sample(p: [f64; 3], v: [[f64; 3]; 3]) -> [f64; 3] {
+    const N: usize = 120;
+    let mut best = (f64::INFINITY, [1.0, 0.0, 0.0]);
+    for i in 0..=N {
+        for j in 0..=N - i {
+            let w = [
+                i as f64 / N as f64,
+                j as f64 / N as f64,
+                (N - i - j) as f64 / N as f64,
+            ];
+            let q = [0, 1, 2].map(|a| w[0] * v[0][a] + w[1] * v[1][a] + w[2] * v[2][a]);
+            let d: f64 = (0..3).map(|a| (q[a] - p[a]).powi(2)).sum();
+            if d < best.0 {
+                best = (d, w);
+            }
+        }
+    }
+    best.1
+}
+
+#[test]
+fn textures_are_sampled_at_the_nearest_point_of_the_triangle() {
+    let dir = tempfile::tempdir().unwrap();
+    // Options before the file name, as exporters write them.
+    let obj = textured_square(dir.path(), "-s 1 1 1 tex/checker.png");
+    let refmesh = reference::load(&obj);
+    let uv = [[0.1, 0.1], [0.9, 0.1], [0.1, 0.9], [0.9, 0.9]];
+    let tint = [255u16, 128, 255, 255];
+    for depth in [4u8, 5] {
+        let out = dir.path().join(format!("t{depth}.vdag"));
+        convert(&obj, &out, depth, &["--colors"]);
+        let bytes = std::fs::read(&out).unwrap();
+        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        let colors = dag.colors().expect("a colour section");
+        let (root_min, size) = reference::root_cube(&refmesh, depth);
+        let voxel = size / f64::from(1u32 << depth);
+        let expected = reference::surface(&reference::snapped(&refmesh, depth), depth);
+        assert_eq!(
+            voxel_codes(&out),
+            expected.keys().copied().collect::<Vec<_>>()
+        );
+        let (mut checked, mut seen) = (0, std::collections::BTreeSet::new());
+        for (i, (&code, &tri)) in expected.iter().enumerate() {
+            let cell = dagfmt::morton::decode(code);
+            let centre = [0, 1, 2].map(|a| root_min[a] + (f64::from(cell[a]) + 0.5) * voxel);
+            let corners = refmesh.triangles[tri];
+            let w = nearest_sample(centre, corners.map(|k| refmesh.vertices[k]));
+            let tex = [0, 1].map(|a| (0..3).map(|k| w[k] * uv[corners[k]][a]).sum::<f64>());
+            // The brute-force point is a grid sample: skip voxels whose point
+            // lies next to a texel boundary.
+            if (tex[0] - 0.5).abs() < 0.02 || (tex[1] - 0.5).abs() < 0.02 {
+                continue;
+            }
+            let texel = TEXELS[usize::from(tex[1] < 0.5)][usize::from(tex[0] >= 0.5)];
+            let want = [0, 1, 2, 3].map(|c| ((u16::from(texel[c]) * tint[c] + 127) / 255) as u8);
+            assert_eq!(
+                colors[4 * i..4 * i + 4],
+                want,
+                "voxel {cell:?} (triangle {tri})"
+            );
+            checked += 1;
+            seen.insert(want);
+        }
+        assert!(
+            checked * 10 > expected.len() * 8,
+            "{checked} of {}",
+            expected.len()
+        );
+        assert_eq!(seen.len(), 4, "every texel shows");
+    }
+}
+
+#[test]
+fn unreadable_texture_falls_back_to_kd_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = textured_square(dir.path(), "tex/missing.png");
+    let out = dir.path().join("m.vdag");
+    let o = crate::common::run_ok(&[
+        "convert",
+        obj.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+        "--depth",
+        "4",
+        "--colors",
+    ]);
+    let text =
+        String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
+    assert!(
+        text.contains("warning:") && text.contains("missing.png") && text.contains("Kd"),
+        "{text}"
+    );
+    let bytes = std::fs::read(&out).unwrap();
+    let dag = dagfmt::Dag::open(&bytes).unwrap();
+    assert!(
+        dag.colors()
+            .unwrap()
+            .chunks(4)
+            .all(|c| c == [255, 128, 255, 255])
+    );
 }

@@ -177,9 +177,10 @@ impl NodeArena {
 
 /// 64-bit finaliser of MurmurHash3: every input bit affects every output bit,
 /// which hashbrown needs (it takes the bucket from the low bits and a tag from
-/// the top seven).
+/// the top seven). Public for builders outside this crate that deduplicate
+/// records the same way (`dagtool`'s out-of-core merge).
 #[inline]
-fn fmix64(mut x: u64) -> u64 {
+pub fn fmix64(mut x: u64) -> u64 {
     x ^= x >> 33;
     x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
     x ^= x >> 33;

@@ -59,7 +59,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use dagfmt::assemble::SectionInfo;
-use dagfmt::builder::{BuildError, BuiltDag, DagBuilder, Subtrees, UpperBuilder, UpperLevels};
+use dagfmt::builder::{
+    BuildError, BuiltDag, DagBuilder, Subtrees, UpperBuilder, UpperLevels, fmix64,
+};
 use dagfmt::layout::{self, AttributeKind, MAX_LEAF_COUNT, MAX_NODE_LEVEL_BYTES};
 use dagfmt::stats::LevelStats;
 use hashbrown::HashTable;
@@ -1014,16 +1016,6 @@ impl SpilledRuns {
 
 // ---------------------------------------------------------------------------
 // The merge.
-
-/// 64-bit finaliser of MurmurHash3.
-#[inline]
-fn fmix64(mut x: u64) -> u64 {
-    x ^= x >> 33;
-    x = x.wrapping_mul(0xff51_afd7_ed55_8ccd);
-    x ^= x >> 33;
-    x = x.wrapping_mul(0xc4ce_b9fe_1a85_ec53);
-    x ^ (x >> 33)
-}
 
 #[inline]
 fn hash_words(words: &[u32]) -> u64 {

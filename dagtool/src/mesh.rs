@@ -658,3 +658,61 @@ impl SnappedMesh {
         odd.is_empty()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn point(w: [f64; 3], v: [[f64; 3]; 3]) -> [f64; 3] {
+        [0, 1, 2].map(|a| w[0] * v[0][a] + w[1] * v[1][a] + w[2] * v[2][a])
+    }
+
+    fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+        (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()
+    }
+
+    proptest! {
+        /// The closest point is a point of the triangle (weights >= 0 summing
+        /// to 1) and no farther than the nearest of a fine grid of its points.
+        #[test]
+        fn closest_point_is_no_farther_than_any_sample(
+            v in prop::array::uniform3(prop::array::uniform3(-4.0f64..4.0)),
+            p in prop::array::uniform3(-6.0f64..6.0),
+        ) {
+            let w = closest_barycentric(p, v);
+            prop_assert!(w.iter().all(|&x| (-1e-12..=1.0 + 1e-12).contains(&x)), "{w:?}");
+            prop_assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-9);
+            let got = distance(point(w, v), p);
+            const N: usize = 60;
+            for i in 0..=N {
+                for j in 0..=N - i {
+                    let s = [i, j, N - i - j].map(|k| k as f64 / N as f64);
+                    prop_assert!(got <= distance(point(s, v), p) + 1e-9);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn texels_repeat_and_v_runs_up() {
+        // 2 x 1 texels: left red, right green; 1 x 2: top red, bottom green.
+        let red = [255, 0, 0, 255];
+        let green = [0, 255, 0, 255];
+        let wide = Texture::from_rgba(2, 1, [red, green].concat()).unwrap();
+        assert_eq!(wide.sample([0.25, 0.5]), red);
+        assert_eq!(wide.sample([0.75, 0.5]), green);
+        assert_eq!(wide.sample([1.25, 7.5]), red);
+        assert_eq!(wide.sample([-0.25, 0.5]), green);
+        assert_eq!(wide.sample([f64::NAN, 0.5]), red);
+        let tall = Texture::from_rgba(1, 2, [red, green].concat()).unwrap();
+        assert_eq!(tall.sample([0.5, 0.75]), red);
+        assert_eq!(tall.sample([0.5, 0.25]), green);
+        assert!(Texture::from_rgba(2, 2, vec![0; 12]).is_none());
+        assert!(Texture::from_rgba(0, 0, Vec::new()).is_none());
+        assert_eq!(
+            modulate([255, 128, 0, 255], [128, 255, 255, 128]),
+            [128, 128, 0, 128]
+        );
+    }
+}

@@ -642,7 +642,10 @@ fn convert_mesh(
     // Checked before any work, like the rest of the command line.
     spill_settings(opts, depth, 0)?;
     let t = Instant::now();
-    let mesh = Mesh::load_obj(&opts.input)?;
+    let mut mesh = Mesh::load_obj(&opts.input)?;
+    if opts.colors {
+        mesh.load_textures(opts.input.parent().unwrap_or(Path::new("")));
+    }
     let check = mesh.check()?;
     let mapping = GridMapping::fit(check.min, check.max, depth)?;
     let snapped = SnappedMesh::new(&mesh, &mapping);

@@ -20,19 +20,24 @@ pub struct Mesh {
     pub triangle_material: Vec<u32>,
     /// The diffuse colour (`Kd`) of each material, as RGBA8.
     pub colors: Vec<[u8; 4]>,
-    /// The diffuse texture (`map_Kd`) of each material that has one and whose
-    /// image could be read (indexed like `colors`; empty when none has one).
+    /// The diffuse texture file (`map_Kd`, as written) of each material
+    /// (indexed like `colors`).
+    pub texture_files: Vec<Option<String>>,
+    /// The decoded textures, once [`Mesh::load_textures`] has read them
+    /// (indexed like `colors`; `None` for a material without a readable one).
     pub textures: Vec<Option<Texture>>,
     /// Texture coordinates (`vt`) of the file.
     pub texcoords: Vec<[f64; 2]>,
     /// Indices into `texcoords` of each triangle's corners (`u32::MAX` for a
-    /// triangle without them). Empty unless some material has a texture, so
-    /// untextured meshes pay nothing.
+    /// triangle without them). Empty unless some material names a texture,
+    /// so untextured meshes pay nothing.
     pub triangle_texcoords: Vec<[u32; 3]>,
     /// A problem with the materials that did not stop loading (e.g. a missing `.mtl`).
     pub material_warning: Option<String>,
     /// Textures that could not be read (their materials fall back to `Kd`).
     pub texture_warnings: Vec<String>,
+    /// The name of each material (for messages).
+    pub material_names: Vec<String>,
 }
 
 /// A material's diffuse texture (`map_Kd`), decoded to RGBA8, rows from the
@@ -198,7 +203,7 @@ impl Mesh {
             )
         });
         guarded.check(&name)?;
-        Self::from_tobj(loaded, &name, path.parent())
+        Self::from_tobj(loaded, &name)
     }
 
     /// Loads an OBJ held in memory, like [`Mesh::load_obj`] but without
@@ -211,16 +216,11 @@ impl Mesh {
             Err(tobj::LoadError::OpenFileFailed)
         });
         guarded.check(name)?;
-        Self::from_tobj(loaded, name, None)
+        Self::from_tobj(loaded, name)
     }
 
-    /// The mesh of what tobj loaded from `name`; textures are read from
-    /// `texture_dir` (none without it).
-    fn from_tobj(
-        loaded: tobj::LoadResult,
-        name: &str,
-        texture_dir: Option<&Path>,
-    ) -> Result<Mesh, ConvertError> {
+    /// The mesh of what tobj loaded from `name`.
+    fn from_tobj(loaded: tobj::LoadResult, name: &str) -> Result<Mesh, ConvertError> {
         let (models, materials) =
             loaded.map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
         let mut mesh = Mesh::default();
@@ -239,30 +239,17 @@ impl Mesh {
                         None => DEFAULT_COLOR,
                     })
                     .collect();
-                if let Some(dir) = texture_dir {
-                    mesh.textures = materials
-                        .iter()
-                        .map(|m| {
-                            let file = m.diffuse_texture.as_deref()?;
-                            let path = texture_path(dir, file);
-                            Texture::load(&path)
-                                .map_err(|e| {
-                                    mesh.texture_warnings.push(format!(
-                                        "texture {} of material {} not loaded ({e})",
-                                        path.display(),
-                                        m.name
-                                    ))
-                                })
-                                .ok()
-                        })
-                        .collect();
-                }
+                mesh.texture_files = materials
+                    .iter()
+                    .map(|m| m.diffuse_texture.clone())
+                    .collect();
+                mesh.material_names = materials.iter().map(|m| m.name.clone()).collect();
             }
             Err(e) => {
                 mesh.material_warning = Some(format!("materials not loaded ({e})"));
             }
         }
-        let textured = mesh.textures.iter().any(Option::is_some);
+        let textured = mesh.texture_files.iter().any(Option::is_some);
         for model in &models {
             let m = &model.mesh;
             let base = mesh.vertices.len();
@@ -319,10 +306,35 @@ impl Mesh {
             .unwrap_or(DEFAULT_COLOR)
     }
 
+    /// Decodes the materials' textures, their file names taken relative to
+    /// `dir` (the OBJ's folder); one that cannot be read adds a warning and
+    /// leaves its material with `Kd`. Only `--colors` needs them.
+    pub fn load_textures(&mut self, dir: &Path) {
+        let mut warnings = Vec::new();
+        self.textures = self
+            .texture_files
+            .iter()
+            .enumerate()
+            .map(|(m, file)| {
+                let path = texture_path(dir, file.as_deref()?);
+                Texture::load(&path)
+                    .map_err(|e| {
+                        let material = self.material_names.get(m).map_or("?", String::as_str);
+                        warnings.push(format!(
+                            "texture {} of material {material} not loaded ({e})",
+                            path.display()
+                        ));
+                    })
+                    .ok()
+            })
+            .collect();
+        self.texture_warnings = warnings;
+    }
+
     /// Whether some triangle takes its colour from a texture (so that
     /// [`Mesh::voxel_color`] needs the voxel's position).
     pub fn has_textures(&self) -> bool {
-        !self.triangle_texcoords.is_empty()
+        !self.triangle_texcoords.is_empty() && self.textures.iter().any(Option::is_some)
     }
 
     /// The colour of a voxel set by triangle `t`, whose centre is at `p`

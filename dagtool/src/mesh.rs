@@ -63,6 +63,13 @@ impl Texture {
 
     /// Reads an image file (PNG, JPEG, TGA or BMP).
     pub fn load(path: &Path) -> Result<Texture, String> {
+        // Only regular files: a FIFO or a device named by a material would
+        // block or never end.
+        match std::fs::metadata(path) {
+            Ok(m) if m.is_file() => {}
+            Ok(_) => return Err("not a regular file".into()),
+            Err(e) => return Err(e.to_string()),
+        }
         let image = image::ImageReader::open(path)
             .map_err(|e| e.to_string())?
             .with_guessed_format()

@@ -217,30 +217,41 @@ fn textures_are_sampled_at_the_nearest_point_of_the_triangle() {
 
 #[test]
 fn unreadable_texture_falls_back_to_kd_with_a_warning() {
-    let dir = tempfile::tempdir().unwrap();
-    let obj = textured_square(dir.path(), "tex/missing.png");
-    let out = dir.path().join("m.vdag");
-    let o = crate::common::run_ok(&[
-        "convert",
-        obj.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--depth",
-        "4",
-        "--colors",
-    ]);
-    let text =
-        String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
-    assert!(
-        text.contains("warning:") && text.contains("missing.png") && text.contains("Kd"),
-        "{text}"
-    );
-    let bytes = std::fs::read(&out).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
-    assert!(
-        dag.colors()
-            .unwrap()
-            .chunks(4)
-            .all(|c| c == [255, 128, 255, 255])
-    );
+    // A missing file, a folder, and bytes that are no image.
+    for (k, (map_kd, why)) in [
+        ("tex/missing.png", "missing.png"),
+        ("tex", "not a regular file"),
+        ("t.mtl", "image format"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let dir = tempfile::tempdir().unwrap();
+        let obj = textured_square(dir.path(), map_kd);
+        let out = dir.path().join(format!("m{k}.vdag"));
+        let o = crate::common::run_ok(&[
+            "convert",
+            obj.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--depth",
+            "4",
+            "--colors",
+        ]);
+        let text =
+            String::from_utf8_lossy(&o.stdout).into_owned() + &String::from_utf8_lossy(&o.stderr);
+        let warnings: Vec<&str> = text.lines().filter(|l| l.contains("warning:")).collect();
+        assert!(
+            warnings.len() == 1 && warnings[0].contains(why) && warnings[0].contains("Kd"),
+            "{map_kd}: {text}"
+        );
+        let bytes = std::fs::read(&out).unwrap();
+        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        assert!(
+            dag.colors()
+                .unwrap()
+                .chunks(4)
+                .all(|c| c == [255, 128, 255, 255])
+        );
+    }
 }

@@ -5,14 +5,15 @@
 //!
 //! - [`obj_import`]: an OBJ held in memory loads or fails cleanly, and a mesh
 //!   that passes [`Mesh::check`] can be placed in the root cube, snapped and
-//!   tested for closedness without a panic;
+//!   tested for closedness without a panic, and textured colours of its
+//!   triangles are texels;
 //! - [`voxel_list`]: a voxel list held in memory (text or binary) loads or
 //!   fails cleanly, and what loads is sorted, inside its volume, and comes
 //!   back unchanged through the binary form.
 //!
 //! Not part of the stable API.
 
-use crate::mesh::{GridMapping, Mesh, SnappedMesh};
+use crate::mesh::{GridMapping, Mesh, SnappedMesh, Texture};
 use crate::voxlist;
 
 /// The depth the [`obj_import`] harness places meshes at.
@@ -54,6 +55,36 @@ pub fn obj_import(bytes: &[u8]) {
         let _ = snapped.triangle(t as u32);
     }
     let _ = snapped.is_closed();
+    textured_colors(mesh);
+}
+
+/// Gives every triangle of a checked mesh a 2 x 2 texture, with texture
+/// coordinates taken from the vertices' x and y, and checks that the colour of
+/// a voxel at each triangle's centroid and at a point off it is one of the
+/// texels (the tint is white).
+fn textured_colors(mut mesh: Mesh) {
+    let texels: Vec<u8> = (0..16).map(|i| i * 16).collect();
+    let Some(texture) = Texture::from_rgba(2, 2, texels.clone()) else {
+        unreachable!("a 2 x 2 texture has 16 bytes");
+    };
+    mesh.colors = vec![[255; 4]];
+    mesh.textures = vec![Some(texture)];
+    mesh.triangle_material = vec![0; mesh.triangles.len()];
+    mesh.texcoords = mesh.vertices.iter().map(|v| [v[0], v[1]]).collect();
+    mesh.triangle_texcoords = mesh.triangles.clone();
+    assert!(mesh.has_textures());
+    for (t, tri) in mesh.triangles.iter().enumerate() {
+        let v = tri.map(|i| mesh.vertices[i as usize]);
+        let centroid = [0, 1, 2].map(|a| (v[0][a] + v[1][a] + v[2][a]) / 3.0);
+        let off = [0, 1, 2].map(|a| v[0][a] * 1.5 - v[1][a] * 0.5 + 1.0);
+        for p in [centroid, off] {
+            let c = mesh.voxel_color(t, p);
+            assert!(
+                texels.chunks(4).any(|texel| texel == c),
+                "colour {c:?} is no texel"
+            );
+        }
+    }
 }
 
 /// The voxel list harness: reads `bytes` with no depth given and with the

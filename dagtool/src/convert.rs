@@ -820,7 +820,7 @@ fn convert_mesh(
                                         mapping.root_min[a]
                                             + (f64::from(voxel[a]) + 0.5) * voxel_size
                                     });
-                                    mesh.voxel_color(t as usize, centre)
+                                    mesh.voxel_color(t as usize, centre, voxel_size)
                                 });
                             }
                         }

@@ -60,10 +60,13 @@ pub fn obj_import(bytes: &[u8]) {
 
 /// Gives every triangle of a checked mesh a 2 x 2 texture, with texture
 /// coordinates taken from the vertices' x and y, and checks that the colour of
-/// a voxel at each triangle's centroid and at a point off it is one of the
-/// texels (the tint is white).
+/// a voxel at each triangle's centroid and at a point off it, tiny or huge, is
+/// one of the texels or their mean (the tint is white).
 fn textured_colors(mut mesh: Mesh) {
     let texels: Vec<u8> = (0..16).map(|i| i * 16).collect();
+    // The 1 x 1 mip level: per channel, the rounded mean of the four.
+    let mean: [u8; 4] = [0, 1, 2, 3]
+        .map(|c| (((0..4).map(|k| u32::from(texels[4 * k + c])).sum::<u32>() + 2) / 4) as u8);
     let Some(texture) = Texture::from_rgba(2, 2, texels.clone()) else {
         unreachable!("a 2 x 2 texture has 16 bytes");
     };
@@ -77,10 +80,10 @@ fn textured_colors(mut mesh: Mesh) {
         let v = tri.map(|i| mesh.vertices[i as usize]);
         let centroid = [0, 1, 2].map(|a| (v[0][a] + v[1][a] + v[2][a]) / 3.0);
         let off = [0, 1, 2].map(|a| v[0][a] * 1.5 - v[1][a] * 0.5 + 1.0);
-        for p in [centroid, off] {
-            let c = mesh.voxel_color(t, p);
+        for (p, voxel) in [(centroid, 0.0), (off, 1e-3), (centroid, 1e9)] {
+            let c = mesh.voxel_color(t, p, voxel);
             assert!(
-                texels.chunks(4).any(|texel| texel == c),
+                texels.chunks(4).any(|texel| texel == c) || c == mean,
                 "colour {c:?} is no texel"
             );
         }

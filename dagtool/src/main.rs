@@ -55,9 +55,12 @@ ATTRIBUTES
   word of the statement, `\\` read as `/`) and the triangle has texture
   coordinates, the voxel takes the texel nearest to the texture coordinates of
   the triangle's point closest to the voxel centre (repeating outside [0, 1)),
-  times Kd; a texture that cannot be read is a warning and its material keeps
-  Kd. Colours take 4 bytes per voxel; beyond 1/16 of --memory-limit (at most
-  256 MiB) they are streamed to a temporary file.
+  times Kd. The texel comes from the box-filtered mip level whose texels are
+  nearest the voxel's footprint in size (voxel edge times the triangle's
+  texels-per-length), so voxels larger than texels take their mean. A texture
+  that cannot be read is a warning and its material keeps Kd. Colours take 4
+  bytes per voxel; beyond 1/16 of --memory-limit (at most 256 MiB) they are
+  streamed to a temporary file.
 
 MEMORY, TEMPORARY FILES AND OUTPUT
   The volume is processed in chunks of 128^3 voxels in Morton order on all cores.

@@ -40,13 +40,55 @@ pub struct Mesh {
     pub material_names: Vec<String>,
 }
 
-/// A material's diffuse texture (`map_Kd`), decoded to RGBA8, rows from the
-/// top of the image.
+/// A material's diffuse texture (`map_Kd`), decoded to RGBA8, with its
+/// box-filtered mip levels, so that a voxel covering many texels takes their
+/// average rather than whichever one its centre falls on.
 #[derive(Clone, Debug)]
 pub struct Texture {
+    /// Level 0 is the image; each next one halves the sides (at least 1).
+    levels: Vec<MipLevel>,
+}
+
+/// One mip level: RGBA8 texels, rows from the top of the image.
+#[derive(Clone, Debug)]
+struct MipLevel {
     width: u32,
     height: u32,
     rgba: Vec<u8>,
+}
+
+impl MipLevel {
+    /// The next level: sides halved (at least 1), each texel the rounded
+    /// mean of the texels of this level it covers (two or three per axis).
+    fn halved(&self) -> MipLevel {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let (nw, nh) = ((w / 2).max(1), (h / 2).max(1));
+        let mut rgba = vec![0u8; nw * nh * 4];
+        for y in 0..nh {
+            let rows = y * h / nh..(y + 1) * h / nh;
+            for x in 0..nw {
+                let cols = x * w / nw..(x + 1) * w / nw;
+                let mut sum = [0u32; 4];
+                for sy in rows.clone() {
+                    for sx in cols.clone() {
+                        let at = (sy * w + sx) * 4;
+                        for (total, &byte) in sum.iter_mut().zip(&self.rgba[at..at + 4]) {
+                            *total += u32::from(byte);
+                        }
+                    }
+                }
+                let n = (rows.len() * cols.len()) as u32;
+                for c in 0..4 {
+                    rgba[(y * nw + x) * 4 + c] = ((sum[c] + n / 2) / n) as u8;
+                }
+            }
+        }
+        MipLevel {
+            width: nw as u32,
+            height: nh as u32,
+            rgba,
+        }
+    }
 }
 
 impl Texture {
@@ -54,11 +96,21 @@ impl Texture {
     /// from the top; `None` when the sizes do not match or it is empty.
     pub fn from_rgba(width: u32, height: u32, rgba: Vec<u8>) -> Option<Texture> {
         let texels = u64::from(width) * u64::from(height);
-        (texels > 0 && rgba.len() as u64 == texels * 4).then_some(Texture {
+        if texels == 0 || rgba.len() as u64 != texels * 4 {
+            return None;
+        }
+        let mut levels = vec![MipLevel {
             width,
             height,
             rgba,
-        })
+        }];
+        while let Some(last) = levels.last()
+            && (last.width > 1 || last.height > 1)
+        {
+            let next = last.halved();
+            levels.push(next);
+        }
+        Some(Texture { levels })
     }
 
     /// Reads an image file (PNG, JPEG, TGA or BMP).
@@ -81,20 +133,30 @@ impl Texture {
         Texture::from_rgba(width, height, image.into_raw()).ok_or_else(|| "empty image".into())
     }
 
-    /// The texel at texture coordinates `uv`: the nearest one, the texture
-    /// repeating outside `[0, 1)` (`v` runs up the image, as in OBJ).
-    pub fn sample(&self, uv: [f64; 2]) -> [u8; 4] {
+    /// The texel at texture coordinates `uv` for a footprint `texels` wide in
+    /// texels of the image: the nearest texel of the mip level whose texels
+    /// are closest to the footprint in size (the image itself for footprints
+    /// up to about one texel). The texture repeats outside `[0, 1)`, and `v`
+    /// runs up the image, as in OBJ.
+    pub fn sample(&self, uv: [f64; 2], texels: f64) -> [u8; 4] {
+        let level = if texels > 1.0 {
+            // Rounded log2, in whole levels; NaN and infinities go to the ends.
+            (texels.log2().round() as usize).min(self.levels.len() - 1)
+        } else {
+            0
+        };
+        let l = &self.levels[level];
         let wrap = |c: f64| if c.is_finite() { c - c.floor() } else { 0.0 };
         let (u, v) = (wrap(uv[0]), wrap(uv[1]));
-        let x = ((u * f64::from(self.width)) as u32).min(self.width - 1);
-        let y = (((1.0 - v) * f64::from(self.height)) as u32).min(self.height - 1);
-        let at = (y as usize * self.width as usize + x as usize) * 4;
-        [
-            self.rgba[at],
-            self.rgba[at + 1],
-            self.rgba[at + 2],
-            self.rgba[at + 3],
-        ]
+        let x = ((u * f64::from(l.width)) as u32).min(l.width - 1);
+        let y = (((1.0 - v) * f64::from(l.height)) as u32).min(l.height - 1);
+        let at = (y as usize * l.width as usize + x as usize) * 4;
+        [l.rgba[at], l.rgba[at + 1], l.rgba[at + 2], l.rgba[at + 3]]
+    }
+
+    /// The image's size in texels.
+    fn size(&self) -> (u32, u32) {
+        (self.levels[0].width, self.levels[0].height)
     }
 }
 
@@ -344,11 +406,14 @@ impl Mesh {
         !self.triangle_texcoords.is_empty() && self.textures.iter().any(Option::is_some)
     }
 
-    /// The colour of a voxel set by triangle `t`, whose centre is at `p`
-    /// (world space): the texel of the material's texture at the point of the
-    /// triangle closest to `p`, times `Kd`; the triangle's colour
+    /// The colour of a voxel of edge `voxel` set by triangle `t`, whose centre
+    /// is at `p` (world space): the material's texture at the texture
+    /// coordinates of the triangle's point closest to `p`, averaged over the
+    /// voxel's footprint (see [`Texture::sample`]: the footprint's width in
+    /// texels is `voxel` times the triangle's texture-to-world scale, the
+    /// square root of its area ratio), times `Kd`; the triangle's colour
     /// ([`Mesh::triangle_color`]) without a texture or texture coordinates.
-    pub fn voxel_color(&self, t: usize, p: [f64; 3]) -> [u8; 4] {
+    pub fn voxel_color(&self, t: usize, p: [f64; 3], voxel: f64) -> [u8; 4] {
         let tint = self.triangle_color(t);
         let m = self.triangle_material[t] as usize;
         let (Some(Some(texture)), Some(corners)) =
@@ -372,7 +437,29 @@ impl Mesh {
         }
         let w = closest_barycentric(p, v);
         let at = [0, 1].map(|a| w[0] * uv[0][a] + w[1] * uv[1][a] + w[2] * uv[2][a]);
-        modulate(texture.sample(at), tint)
+        // Twice the areas: in the world, and in texels.
+        let e = [1, 2].map(|k| [0, 1, 2].map(|a| v[k][a] - v[0][a]));
+        let n = [
+            e[0][1] * e[1][2] - e[0][2] * e[1][1],
+            e[0][2] * e[1][0] - e[0][0] * e[1][2],
+            e[0][0] * e[1][1] - e[0][1] * e[1][0],
+        ];
+        let world = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let (tw, th) = texture.size();
+        let f = [1, 2].map(|k| {
+            [
+                (uv[k][0] - uv[0][0]) * f64::from(tw),
+                (uv[k][1] - uv[0][1]) * f64::from(th),
+            ]
+        });
+        let texel_area = (f[0][0] * f[1][1] - f[0][1] * f[1][0]).abs();
+        // A degenerate triangle (or one without a texture area) reads the image.
+        let texels = if world > 0.0 {
+            voxel * (texel_area / world).sqrt()
+        } else {
+            0.0
+        };
+        modulate(texture.sample(at, texels), tint)
     }
 
     /// Checks that the mesh can be voxelized: it has triangles, every vertex
@@ -719,19 +806,51 @@ mod tests {
         let red = [255, 0, 0, 255];
         let green = [0, 255, 0, 255];
         let wide = Texture::from_rgba(2, 1, [red, green].concat()).unwrap();
-        assert_eq!(wide.sample([0.25, 0.5]), red);
-        assert_eq!(wide.sample([0.75, 0.5]), green);
-        assert_eq!(wide.sample([1.25, 7.5]), red);
-        assert_eq!(wide.sample([-0.25, 0.5]), green);
-        assert_eq!(wide.sample([f64::NAN, 0.5]), red);
+        assert_eq!(wide.sample([0.25, 0.5], 1.0), red);
+        assert_eq!(wide.sample([0.75, 0.5], 0.0), green);
+        assert_eq!(wide.sample([1.25, 7.5], 1.2), red);
+        assert_eq!(wide.sample([-0.25, 0.5], f64::NAN), green);
+        assert_eq!(wide.sample([f64::NAN, 0.5], 1.0), red);
         let tall = Texture::from_rgba(1, 2, [red, green].concat()).unwrap();
-        assert_eq!(tall.sample([0.5, 0.75]), red);
-        assert_eq!(tall.sample([0.5, 0.25]), green);
+        assert_eq!(tall.sample([0.5, 0.75], 1.0), red);
+        assert_eq!(tall.sample([0.5, 0.25], 1.0), green);
+        // Footprints of two texels or more read the 1 x 1 level: the mean.
+        for texels in [2.0, 3.0, 1e300, f64::INFINITY] {
+            assert_eq!(wide.sample([0.25, 0.5], texels), [128, 128, 0, 255]);
+        }
         assert!(Texture::from_rgba(2, 2, vec![0; 12]).is_none());
         assert!(Texture::from_rgba(0, 0, Vec::new()).is_none());
         assert_eq!(
             modulate([255, 128, 0, 255], [128, 255, 255, 128]),
             [128, 128, 0, 128]
         );
+    }
+
+    #[test]
+    fn mip_levels_are_box_filtered() {
+        // 4 x 2 texels with red 0, 30, ..., 210 (rows from the top).
+        let rgba: Vec<u8> = (0..8u8).flat_map(|i| [i * 30, 7, 0, 255]).collect();
+        let t = Texture::from_rgba(4, 2, rgba).unwrap();
+        let sizes: Vec<_> = t.levels.iter().map(|l| (l.width, l.height)).collect();
+        assert_eq!(sizes, [(4, 2), (2, 1), (1, 1)]);
+        // Level 1: the rounded means of columns 0-1 and 2-3 of both rows.
+        let reds: Vec<u8> = t.levels[1].rgba.chunks(4).map(|c| c[0]).collect();
+        assert_eq!(reds, [75, 135]);
+        assert_eq!(t.levels[2].rgba, [105, 7, 0, 255]);
+        // Odd sides: 3 x 1 halves to one texel, the mean of the three.
+        let odd = [[0u8; 4], [3; 4], [9; 4]].concat();
+        let t = Texture::from_rgba(3, 1, odd).unwrap();
+        assert_eq!(t.levels.len(), 2);
+        assert_eq!(t.levels[1].rgba, [4, 4, 4, 4]);
+        // The level is the rounded log2 of the footprint: a one-texel checker
+        // reads as itself below sqrt 2 texels and as grey from there.
+        let rgba: Vec<u8> = (0..16 * 16u32)
+            .flat_map(|i| [((i + i / 16) % 2 * 255) as u8, 0, 0, 255])
+            .collect();
+        let t = Texture::from_rgba(16, 16, rgba).unwrap();
+        assert_eq!(t.sample([0.01, 0.99], 1.4)[0], 0);
+        assert_eq!(t.sample([0.07, 0.99], 1.4)[0], 255);
+        assert_eq!(t.sample([0.01, 0.99], 1.5)[0], 128);
+        assert_eq!(t.sample([0.5, 0.5], 100.0)[0], 128);
     }
 }

@@ -123,6 +123,17 @@ const TEXELS: [[[u8; 4]; 2]; 2] = [
 ];
 
 fn textured_square(dir: &Path, map_kd: &str) -> PathBuf {
+    let mut image = image::RgbaImage::new(2, 2);
+    for (y, row) in TEXELS.iter().enumerate() {
+        for (x, texel) in row.iter().enumerate() {
+            image.put_pixel(x as u32, y as u32, image::Rgba(*texel));
+        }
+    }
+    textured_square_with(dir, map_kd, &image)
+}
+
+/// The square with `image` as `tex/checker.png`.
+fn textured_square_with(dir: &Path, map_kd: &str, image: &image::RgbaImage) -> PathBuf {
     let obj = dir.join("t.obj");
     std::fs::write(&obj, TEXTURED_OBJ).unwrap();
     std::fs::write(
@@ -131,12 +142,6 @@ fn textured_square(dir: &Path, map_kd: &str) -> PathBuf {
     )
     .unwrap();
     std::fs::create_dir_all(dir.join("tex")).unwrap();
-    let mut image = image::RgbaImage::new(2, 2);
-    for (y, row) in TEXELS.iter().enumerate() {
-        for (x, texel) in row.iter().enumerate() {
-            image.put_pixel(x as u32, y as u32, image::Rgba(*texel));
-        }
-    }
     image.save(dir.join("tex/checker.png")).unwrap();
     obj
 }
@@ -212,6 +217,37 @@ fn textures_are_sampled_at_the_nearest_point_of_the_triangle() {
             expected.len()
         );
         assert_eq!(seen.len(), 4, "every texel shows");
+    }
+}
+
+#[test]
+fn voxels_larger_than_texels_take_their_mean() {
+    // A one-texel black and white checker of 64 x 64 over the square: at
+    // depth 4 a voxel spans about 3.4 texels, so it reads the mip level of
+    // 4 x 4 texel means, an even grey; at depth 8 (0.2 texels) the texels.
+    let image = image::RgbaImage::from_fn(64, 64, |x, y| {
+        image::Rgba(if (x + y) % 2 == 0 {
+            [0, 0, 0, 255]
+        } else {
+            [255; 4]
+        })
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let obj = textured_square_with(dir.path(), "tex/checker.png", &image);
+    let tinted = |v: u16| [v, v * 128 / 255, v, 255].map(|c| c as u8);
+    let grey = [128, 64, 128, 255];
+    for (depth, allowed) in [(4u8, vec![grey]), (8, vec![tinted(0), tinted(255)])] {
+        let out = dir.path().join(format!("g{depth}.vdag"));
+        convert(&obj, &out, depth, &["--colors"]);
+        let bytes = std::fs::read(&out).unwrap();
+        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        let colors = dag.colors().unwrap();
+        let mut seen = std::collections::BTreeSet::new();
+        for c in colors.chunks(4) {
+            assert!(allowed.iter().any(|a| a == c), "depth {depth}: {c:?}");
+            seen.insert(c);
+        }
+        assert_eq!(seen.len(), allowed.len(), "depth {depth}");
     }
 }
 

@@ -9,6 +9,7 @@ use dagfmt::assemble::{FileHeader, FileLayout};
 use dagfmt::builder::LevelStats;
 use dagfmt::layout::{AttributeKind, MAX_DEPTH, MIN_DEPTH};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
 
 use crate::error::ConvertError;
 use crate::external::{
@@ -611,6 +612,40 @@ fn convert_voxels(
     Ok(summary)
 }
 
+/// The colours of a chunk's voxels (RGBA8, in the order of its tags) when the
+/// mesh has textures: each tagged voxel's colour at its centre
+/// ([`Mesh::voxel_color`]), white for the voxels of the solid fill.
+fn textured_colors(
+    mesh: &Mesh,
+    out: &ChunkOutput,
+    shift: u32,
+    root_min: [f64; 3],
+    voxel_size: f64,
+) -> Vec<u8> {
+    let mut rgba = Vec::with_capacity(out.tags.len() * 4);
+    // The tags follow the bricks' set bits in Morton order.
+    let mut tags = out.tags.iter();
+    for &(brick, mask) in &out.bricks {
+        let code = ((out.code << shift) | u64::from(brick)) << 6;
+        let mut bits = mask;
+        while bits != 0 {
+            let voxel = dagfmt::morton::decode(code | u64::from(bits.trailing_zeros()));
+            bits &= bits - 1;
+            let Some(&t) = tags.next() else {
+                return rgba;
+            };
+            rgba.extend_from_slice(&if t == NO_TAG {
+                DEFAULT_COLOR
+            } else {
+                let centre =
+                    [0, 1, 2].map(|a| root_min[a] + (f64::from(voxel[a]) + 0.5) * voxel_size);
+                mesh.voxel_color(t as usize, centre, voxel_size)
+            });
+        }
+    }
+    rgba
+}
+
 fn convert_mesh(
     opts: &ConvertOptions,
     limit: u64,
@@ -794,44 +829,32 @@ fn convert_mesh(
         &cfg,
         &|done| bar.set_position(done),
         |outs: Vec<ChunkOutput>| -> Result<(), ConvertError> {
-            for out in outs {
+            // Textured colours need a closest point per voxel: found for the
+            // batch's chunks in parallel, written below in order.
+            let textured: Vec<Vec<u8>> = if colors.is_some() && mesh.has_textures() {
+                outs.par_iter()
+                    .map(|out| textured_colors(&mesh, out, shift, mapping.root_min, voxel_size))
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            for (i, out) in outs.iter().enumerate() {
                 let base = out.code << shift;
                 for &(brick, mask) in &out.bricks {
                     sink.push_brick(base | u64::from(brick), mask)?;
                 }
                 if let Some(colors) = &mut colors {
+                    if let Some(part) = textured.get(i) {
+                        colors.write(part)?;
+                        continue;
+                    }
                     rgba.clear();
-                    if mesh.has_textures() {
-                        // Textured triangles need each voxel's centre: the
-                        // tags follow the bricks' set bits in Morton order.
-                        let mut tags = out.tags.iter();
-                        for &(brick, mask) in &out.bricks {
-                            let code = (base | u64::from(brick)) << 6;
-                            let mut bits = mask;
-                            while bits != 0 {
-                                let voxel =
-                                    dagfmt::morton::decode(code | u64::from(bits.trailing_zeros()));
-                                bits &= bits - 1;
-                                let t = tags.next().copied().unwrap_or(NO_TAG);
-                                rgba.extend_from_slice(&if t == NO_TAG {
-                                    DEFAULT_COLOR
-                                } else {
-                                    let centre = [0, 1, 2].map(|a| {
-                                        mapping.root_min[a]
-                                            + (f64::from(voxel[a]) + 0.5) * voxel_size
-                                    });
-                                    mesh.voxel_color(t as usize, centre, voxel_size)
-                                });
-                            }
-                        }
-                    } else {
-                        for &t in &out.tags {
-                            rgba.extend_from_slice(&if t == NO_TAG {
-                                DEFAULT_COLOR
-                            } else {
-                                mesh.triangle_color(t as usize)
-                            });
-                        }
+                    for &t in &out.tags {
+                        rgba.extend_from_slice(&if t == NO_TAG {
+                            DEFAULT_COLOR
+                        } else {
+                            mesh.triangle_color(t as usize)
+                        });
                     }
                     colors.write(&rgba)?;
                 }

@@ -179,12 +179,44 @@ fn texture_path(dir: &Path, name: &str) -> std::path::PathBuf {
         .clone()
 }
 
+/// `a - b`.
+fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// `a . b`.
+fn dot3(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `a x b`.
+fn cross3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// `|a|`.
+fn length3(a: [f64; 3]) -> f64 {
+    dot3(a, a).sqrt()
+}
+
+/// The items at three indices, or `None` when one is out of range.
+fn gather<T: Copy>(items: &[T], indices: [u32; 3]) -> Option<[T; 3]> {
+    Some([
+        *items.get(indices[0] as usize)?,
+        *items.get(indices[1] as usize)?,
+        *items.get(indices[2] as usize)?,
+    ])
+}
+
 /// Barycentric weights of the point of triangle `v` closest to `p` (Ericson,
 /// *Real-Time Collision Detection*, 5.1.5); degenerate triangles give the
 /// weights of one of their closest points.
 fn closest_barycentric(p: [f64; 3], v: [[f64; 3]; 3]) -> [f64; 3] {
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let (sub, dot) = (sub3, dot3);
     let [a, b, c] = v;
     let (ab, ac) = (sub(b, a), sub(c, a));
     let ap = sub(p, a);
@@ -415,36 +447,21 @@ impl Mesh {
     /// ([`Mesh::triangle_color`]) without a texture or texture coordinates.
     pub fn voxel_color(&self, t: usize, p: [f64; 3], voxel: f64) -> [u8; 4] {
         let tint = self.triangle_color(t);
+        self.texel(t, p, voxel)
+            .map_or(tint, |texel| modulate(texel, tint))
+    }
+
+    /// The texel of [`Mesh::voxel_color`], or `None` when triangle `t` has no
+    /// texture or no (valid) texture coordinates.
+    fn texel(&self, t: usize, p: [f64; 3], voxel: f64) -> Option<[u8; 4]> {
         let m = self.triangle_material[t] as usize;
-        let (Some(Some(texture)), Some(corners)) =
-            (self.textures.get(m), self.triangle_texcoords.get(t))
-        else {
-            return tint;
-        };
-        let mut uv = [[0.0; 2]; 3];
-        for (k, &i) in corners.iter().enumerate() {
-            match self.texcoords.get(i as usize) {
-                Some(&c) => uv[k] = c,
-                None => return tint,
-            }
-        }
-        let mut v = [[0.0; 3]; 3];
-        for (k, &i) in self.triangles[t].iter().enumerate() {
-            match self.vertices.get(i as usize) {
-                Some(&c) => v[k] = c,
-                None => return tint,
-            }
-        }
+        let texture = self.textures.get(m)?.as_ref()?;
+        let uv = gather(&self.texcoords, *self.triangle_texcoords.get(t)?)?;
+        let v = gather(&self.vertices, self.triangles[t])?;
         let w = closest_barycentric(p, v);
         let at = [0, 1].map(|a| w[0] * uv[0][a] + w[1] * uv[1][a] + w[2] * uv[2][a]);
         // Twice the areas: in the world, and in texels.
-        let e = [1, 2].map(|k| [0, 1, 2].map(|a| v[k][a] - v[0][a]));
-        let n = [
-            e[0][1] * e[1][2] - e[0][2] * e[1][1],
-            e[0][2] * e[1][0] - e[0][0] * e[1][2],
-            e[0][0] * e[1][1] - e[0][1] * e[1][0],
-        ];
-        let world = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let world = length3(cross3(sub3(v[1], v[0]), sub3(v[2], v[0])));
         let (tw, th) = texture.size();
         let f = [1, 2].map(|k| {
             [
@@ -459,7 +476,7 @@ impl Mesh {
         } else {
             0.0
         };
-        modulate(texture.sample(at, texels), tint)
+        Some(texture.sample(at, texels))
     }
 
     /// Checks that the mesh can be voxelized: it has triangles, every vertex
@@ -501,14 +518,7 @@ impl Mesh {
                     max[a] = max[a].max(p[a]);
                 }
             }
-            let e1 = [0, 1, 2].map(|a| v[1][a] - v[0][a]);
-            let e2 = [0, 1, 2].map(|a| v[2][a] - v[0][a]);
-            let n = [
-                e1[1] * e2[2] - e1[2] * e2[1],
-                e1[2] * e2[0] - e1[0] * e2[2],
-                e1[0] * e2[1] - e1[1] * e2[0],
-            ];
-            if n == [0.0; 3] {
+            if cross3(sub3(v[1], v[0]), sub3(v[2], v[0])) == [0.0; 3] {
                 degenerate += 1;
             }
         }

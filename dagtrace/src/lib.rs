@@ -28,6 +28,8 @@ pub mod gpu;
 mod packet;
 mod parallel;
 pub mod render;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 mod tables;
 mod tracer;
 

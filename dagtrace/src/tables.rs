@@ -28,6 +28,25 @@ pub static CHAIN: [[u8; 512]; 8] = build_chain();
 /// ray's chain has a unique such child. `FIRST[_][0]` is 0 and never used.
 pub static FIRST: [[u8; 256]; 8] = build_first();
 
+/// [`CHAIN`] as one flat byte table (`[neg * 512 + key]`) with 4 bytes of
+/// padding, so that the vector traversal can gather any entry with a 32-bit
+/// load that stays inside the table.
+pub static CHAIN_PADDED: [u8; 8 * 512 + 4] = flatten_padded(&build_chain());
+
+/// [`FIRST`] as one flat byte table (`[neg * 256 + mask]`), padded like
+/// [`CHAIN_PADDED`].
+pub static FIRST_PADDED: [u8; 8 * 256 + 4] = flatten_padded(&build_first());
+
+const fn flatten_padded<const ROW: usize, const N: usize>(rows: &[[u8; ROW]; 8]) -> [u8; N] {
+    let mut t = [0u8; N];
+    let mut i = 0;
+    while i < 8 * ROW {
+        t[i] = rows[i / ROW][i % ROW];
+        i += 1;
+    }
+    t
+}
+
 /// Number of set bits of a byte: the rank of a child pointer. A table because
 /// the default x86-64 target has no `popcnt` instruction.
 pub static POPCOUNT8: [u8; 256] = build_popcount();
@@ -177,6 +196,14 @@ mod tests {
         assert_eq!(FIRST[0][0b1001_0110], 1);
         assert_eq!(FIRST[7][0b1000_0001], 7);
         assert_eq!(FIRST[1][0b0000_0011], 1);
+        for neg in 0..8 {
+            for mask in 0..256 {
+                assert_eq!(FIRST_PADDED[neg * 256 + mask], FIRST[neg][mask]);
+            }
+            for key in 0..512 {
+                assert_eq!(CHAIN_PADDED[neg * 512 + key], CHAIN[neg][key]);
+            }
+        }
         for (m, &count) in POPCOUNT8.iter().enumerate() {
             assert_eq!(u32::from(count), m.count_ones());
         }

@@ -1,0 +1,742 @@
+//! The batch traversal with eight rays to an AVX2 vector.
+//!
+//! [`trace_lanes`] is what [`Tracer::trace_lanes`] runs where the processor
+//! has AVX2 (checked at run time). Every ray goes through the very same steps
+//! as [`Tracer::resume`], computed with the very same f32 operations (no fused
+//! multiply-adds), so the answers are identical to [`Tracer::trace`]; only the
+//! bookkeeping differs:
+//!
+//! - A [`Group`] holds eight rays in structure-of-arrays form. One call of
+//!   [`step`] advances every busy ray of a group by one step: the visit of a
+//!   node (its header gathered, the plane parameters and the `CHAIN` key
+//!   computed for all eight at once), or one step back to the parent when no
+//!   child is left, then the choice of the next child (`FIRST`), its rank
+//!   (popcount) and its pointer (gathered).
+//! - Two groups take turns, and the node each ray goes to next is prefetched,
+//!   so the memory latency of one group's reads is spent on the other group.
+//! - What is rare or branchy stays scalar, done by the tracer's own functions
+//!   for one ray at a time: the set-up of a ray ([`Tracer::begin`]), the 4³
+//!   brick at the end of a descent ([`Tracer::brick`]), the answer
+//!   ([`Tracer::finish`]), and pointers whose 32-bit load would cross the end
+//!   of their section.
+//! - A read outside its level (a malformed file) or any error stops the
+//!   vector traversal, and the whole batch is traced again by
+//!   [`Tracer::trace_lanes_scalar`], which reports the error exactly as it
+//!   always does.
+//!
+//! Gathers address all level sections from one base pointer with 32-bit
+//! offsets, so files whose sections span more than 2 GiB use the scalar lanes.
+
+use std::arch::x86_64::*;
+
+use dagfmt::batch::{Hit, Ray};
+use glam::Vec3A;
+
+use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
+use crate::tracer::{Begun, Cell, Frame, LEVEL_SLOTS, Stack, TraceError, Tracer, Walk};
+
+/// Rays to a vector.
+const W: usize = 8;
+/// Groups of [`W`] rays in flight, taking turns.
+const GROUPS: usize = 2;
+
+/// What a lane of a group is doing: the values of [`Group::state`].
+mod state {
+    /// No ray.
+    pub const IDLE: i32 = 0;
+    /// To visit the node `target` of `level`.
+    pub const VISIT: i32 = 1;
+    /// Stands on the node of `level`, whose `word`, `mask` and `remaining`
+    /// children are in the lane.
+    pub const CONT: i32 = 2;
+    /// To test the brick (leaf mask `target`) at `brick` below the node of
+    /// `level` (scalar, [`super::Tracer::brick`]); then `CONT`.
+    pub const BRICK: i32 = 3;
+    /// Found: the cell at `brick` of the ray's level, leaf `target`.
+    pub const FOUND: i32 = 4;
+    /// No occupied cell on the ray.
+    pub const MISS: i32 = 5;
+}
+
+/// Whether this processor runs the vector traversal (the result is cached by
+/// the standard library).
+pub(crate) fn available() -> bool {
+    std::is_x86_feature_detected!("avx2")
+}
+
+/// Entries of the per-level tables: three vectors, more than the most
+/// stored levels (20).
+const LEVEL_TABLE: usize = 24;
+
+/// The level sections as gathers address them: byte offsets from one base.
+struct Sections {
+    base: *const u8,
+    /// Depth D of the DAG.
+    depth: i32,
+    /// Per level: byte offset of the section from `base`.
+    offset: [i32; LEVEL_TABLE],
+    /// Per level: section length in bytes.
+    len: [i32; LEVEL_TABLE],
+    /// Per level: pointer width in bytes.
+    width: [i32; LEVEL_TABLE],
+}
+
+impl Sections {
+    /// `None` when the sections cannot be addressed with 32-bit offsets.
+    fn new(tracer: &Tracer<'_>) -> Option<Sections> {
+        let used = &tracer.levels[..=usize::from(tracer.leaf_level)];
+        let base = used
+            .iter()
+            .filter(|l| !l.bytes.is_empty())
+            .map(|l| l.bytes.as_ptr())
+            .min()?;
+        let mut s = Sections {
+            base,
+            depth: i32::from(tracer.depth),
+            offset: [0; LEVEL_TABLE],
+            len: [0; LEVEL_TABLE],
+            width: [0; LEVEL_TABLE],
+        };
+        for (l, level) in used.iter().enumerate() {
+            if level.bytes.is_empty() {
+                continue;
+            }
+            let offset = level.bytes.as_ptr() as usize - base as usize;
+            // Room for a pointer read of up to 32 bytes past a valid header.
+            if offset + level.bytes.len() > i32::MAX as usize - 64 {
+                return None;
+            }
+            s.offset[l] = offset as i32;
+            s.len[l] = level.bytes.len() as i32;
+            s.width[l] = level.width as i32;
+        }
+        Some(s)
+    }
+}
+
+/// Eight rays in flight: the vector state (one array element per lane) and,
+/// for the scalar parts, each ray's walk and stack.
+#[derive(Clone, Copy)]
+#[repr(C, align(32))]
+struct Group {
+    // The ray (mirrored grid frame, clipped), as in `Prepared`.
+    ox: [f32; W],
+    oy: [f32; W],
+    oz: [f32; W],
+    ix: [f32; W],
+    iy: [f32; W],
+    iz: [f32; W],
+    tmin: [f32; W],
+    tmax: [f32; W],
+    // Lower corner and edge of the node of `level`.
+    px: [f32; W],
+    py: [f32; W],
+    pz: [f32; W],
+    size: [f32; W],
+    // Lower corner of the brick or found cell.
+    bx: [f32; W],
+    by: [f32; W],
+    bz: [f32; W],
+    neg: [i32; W],
+    /// Level where the descent stops (`Walk::stop`).
+    stop: [i32; W],
+    /// -1 when `stop` is the ray's level (the cell there is the answer),
+    /// 0 when it is the leaf level above a finer ray level (a brick to test).
+    report: [i32; W],
+    level: [i32; W],
+    target: [i32; W],
+    state: [i32; W],
+    // The node the lane stands on: word, child mask, children left.
+    word: [i32; W],
+    mask: [i32; W],
+    remaining: [i32; W],
+    /// Bit `l` set when the frame of level `l` on the path has children left.
+    pending: [i32; W],
+    walks: [Walk; W],
+    stacks: [Stack; W],
+    ray: [usize; W],
+}
+
+impl Default for Group {
+    fn default() -> Self {
+        Group {
+            ox: [0.0; W],
+            oy: [0.0; W],
+            oz: [0.0; W],
+            ix: [0.0; W],
+            iy: [0.0; W],
+            iz: [0.0; W],
+            tmin: [0.0; W],
+            tmax: [0.0; W],
+            px: [0.0; W],
+            py: [0.0; W],
+            pz: [0.0; W],
+            size: [0.0; W],
+            bx: [0.0; W],
+            by: [0.0; W],
+            bz: [0.0; W],
+            neg: [0; W],
+            stop: [0; W],
+            report: [0; W],
+            level: [0; W],
+            target: [0; W],
+            state: [state::IDLE; W],
+            word: [0; W],
+            mask: [0; W],
+            remaining: [0; W],
+            pending: [0; W],
+            walks: [Walk::default(); W],
+            stacks: [Stack::default(); W],
+            ray: [0; W],
+        }
+    }
+}
+
+impl Group {
+    /// Puts the walk of ray `ray` into `lane` (its stack was filled by
+    /// [`Tracer::begin`]).
+    fn load(&mut self, lane: usize, ray: usize, walk: Walk) {
+        let q = &walk.q;
+        self.ox[lane] = q.origin.x;
+        self.oy[lane] = q.origin.y;
+        self.oz[lane] = q.origin.z;
+        self.ix[lane] = q.inv_dir.x;
+        self.iy[lane] = q.inv_dir.y;
+        self.iz[lane] = q.inv_dir.z;
+        self.tmin[lane] = q.tmin;
+        self.tmax[lane] = q.tmax;
+        self.px[lane] = walk.pos.x;
+        self.py[lane] = walk.pos.y;
+        self.pz[lane] = walk.pos.z;
+        self.size[lane] = walk.size;
+        self.neg[lane] = (q.neg & 7) as i32;
+        self.stop[lane] = i32::from(walk.stop);
+        self.report[lane] = if walk.stop == q.level { -1 } else { 0 };
+        self.level[lane] = i32::from(walk.level);
+        self.target[lane] = walk.target as i32;
+        self.state[lane] = state::VISIT;
+        self.pending[lane] = 0;
+        self.walks[lane] = walk;
+        self.ray[lane] = ray;
+    }
+}
+
+/// Why the vector traversal gave up on a batch.
+struct Abandon;
+
+/// [`Tracer::trace_lanes`] with eight rays to a vector. Call only where
+/// [`available`] is true.
+pub(crate) fn trace_lanes(
+    tracer: &Tracer<'_>,
+    rays: &[Ray],
+    hits: &mut [Hit],
+) -> Result<(), TraceError> {
+    let Some(sections) = Sections::new(tracer) else {
+        return tracer.trace_lanes_scalar(rays, hits);
+    };
+    let mut groups = Box::new([Group::default(); GROUPS]);
+    match run(tracer, &sections, &mut groups, rays, hits) {
+        Ok(()) => Ok(()),
+        // A fault or an error: trace the batch again one ray at a time, which
+        // reports the first error met exactly as it always does.
+        Err(Abandon) => tracer.trace_lanes_scalar(rays, hits),
+    }
+}
+
+/// [`trace_lanes`] without the scalar fallback: `false` when the vector
+/// traversal gave up (on valid DAGs it never should).
+#[cfg(test)]
+pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> bool {
+    let Some(sections) = Sections::new(tracer) else {
+        return false;
+    };
+    let mut groups = Box::new([Group::default(); GROUPS]);
+    run(tracer, &sections, &mut groups, rays, hits).is_ok()
+}
+
+fn run(
+    tracer: &Tracer<'_>,
+    sections: &Sections,
+    groups: &mut [Group; GROUPS],
+    rays: &[Ray],
+    hits: &mut [Hit],
+) -> Result<(), Abandon> {
+    let count = rays.len().min(hits.len());
+    let mut next = 0;
+    // Per group: the lanes that need scalar work (an answer, a brick, a new ray).
+    let mut attention = [(1u32 << W) - 1; GROUPS];
+    let mut busy = [0u32; GROUPS];
+    loop {
+        for (g, group) in groups.iter_mut().enumerate() {
+            let mut lanes = attention[g];
+            while lanes != 0 {
+                let lane = lanes.trailing_zeros() as usize;
+                lanes &= lanes - 1;
+                let cell: Option<Cell> = match group.state[lane] {
+                    state::BRICK => {
+                        let walk = &group.walks[lane];
+                        let leaf = group.target[lane] as u32;
+                        let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
+                        let mut fault = None;
+                        let found = tracer.brick(&walk.q, leaf, at, &mut fault);
+                        if fault.is_some() {
+                            return Err(Abandon);
+                        }
+                        match found {
+                            Some((cell, level)) => Some((cell, level, leaf)),
+                            None => {
+                                group.state[lane] = state::CONT;
+                                continue;
+                            }
+                        }
+                    }
+                    state::FOUND => {
+                        let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
+                        Some((at, group.walks[lane].stop, group.target[lane] as u32))
+                    }
+                    state::MISS => None,
+                    _ => {
+                        // Idle: a new ray, below.
+                        group.state[lane] = state::IDLE;
+                        busy[g] &= !(1 << lane);
+                        refill(tracer, group, lane, &mut next, &rays[..count], hits)?;
+                        if group.state[lane] != state::IDLE {
+                            busy[g] |= 1 << lane;
+                        }
+                        continue;
+                    }
+                };
+                let walk = &group.walks[lane];
+                hits[group.ray[lane]] = tracer
+                    .finish(&walk.ray(), cell, &group.stacks[lane], None)
+                    .map_err(|_| Abandon)?;
+                group.state[lane] = state::IDLE;
+                busy[g] &= !(1 << lane);
+                refill(tracer, group, lane, &mut next, &rays[..count], hits)?;
+                if group.state[lane] != state::IDLE {
+                    busy[g] |= 1 << lane;
+                }
+            }
+            attention[g] = if busy[g] == 0 {
+                0
+            } else {
+                // SAFETY: `trace_lanes` is only called where `available()`
+                // found AVX2.
+                unsafe { step(tracer, sections, group) }?
+            };
+        }
+        if busy.iter().all(|&b| b == 0) {
+            return Ok(());
+        }
+    }
+}
+
+/// Gives `lane` the next ray that needs a traversal, answering on the spot
+/// those that do not; leaves it idle when the rays run out.
+fn refill(
+    tracer: &Tracer<'_>,
+    group: &mut Group,
+    lane: usize,
+    next: &mut usize,
+    rays: &[Ray],
+    hits: &mut [Hit],
+) -> Result<(), Abandon> {
+    while *next < rays.len() {
+        let i = *next;
+        *next += 1;
+        let mut fault = None;
+        match tracer
+            .begin(&rays[i], &mut group.stacks[lane], &mut fault)
+            .map_err(|_| Abandon)?
+        {
+            Begun::Done(hit) => hits[i] = hit,
+            Begun::Walk(walk) => {
+                group.load(lane, i, walk);
+                return Ok(());
+            }
+        }
+    }
+    Ok(())
+}
+
+macro_rules! ldf {
+    ($a:expr) => {
+        _mm256_loadu_ps($a.as_ptr())
+    };
+}
+macro_rules! ldi {
+    ($a:expr) => {
+        _mm256_loadu_si256($a.as_ptr().cast())
+    };
+}
+macro_rules! stf {
+    ($a:expr, $v:expr) => {
+        _mm256_storeu_ps($a.as_mut_ptr(), $v)
+    };
+}
+macro_rules! sti {
+    ($a:expr, $v:expr) => {
+        _mm256_storeu_si256($a.as_mut_ptr().cast(), $v)
+    };
+}
+
+/// One step of every busy lane of `group` (see the module docs). Returns the
+/// lanes that now need scalar work (found, missed, or at a brick).
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, Abandon> {
+    let g_ptr: *mut Group = g;
+    let mut word_out = [0i32; W];
+    let mut bits_out = [0i32; W];
+    let mut level_out = [0i32; W];
+    let mut rank_out = [0i32; W];
+    let mut fetch_out = [0i32; W];
+    let (choose_bits, slow_bits, done_bits);
+    // SAFETY: the loads and stores are of whole `[_; W]` arrays of the group
+    // and of local arrays. Every gather reads only lanes whose mask is set:
+    // table entries at in-range indices (`neg` < 8 and keys < 512 or masks <
+    // 256 in the padded tables; stack frames of levels < LEVEL_SLOTS of
+    // lanes < W), and node words checked against their section's length just
+    // before (headers: `target < len / 4`; pointers: `at + 4 <= len`), at
+    // offsets from `s.base` that `Sections::new` checked to address the
+    // sections.
+    unsafe {
+        let g = &mut *g_ptr;
+        let zero = _mm256_setzero_si256();
+        let one = _mm256_set1_epi32(1);
+        let byte = _mm256_set1_epi32(0xff);
+        let base: *const i32 = s.base.cast();
+        let tables = |t: &[i32; LEVEL_TABLE]| {
+            [0, 8, 16].map(|i| _mm256_loadu_si256(t[i..i + 8].as_ptr().cast()))
+        };
+        let (offsets, lens, widths) = (tables(&s.offset), tables(&s.len), tables(&s.width));
+
+        let state = ldi!(g.state);
+        let visit = _mm256_cmpeq_epi32(state, _mm256_set1_epi32(state::VISIT));
+        let cont = _mm256_cmpeq_epi32(state, _mm256_set1_epi32(state::CONT));
+        let mut level = ldi!(g.level);
+        let target = ldi!(g.target);
+        let neg = ldi!(g.neg);
+
+        // Visit: the header, bounds-checked like `Level::header_or_fault`.
+        let len = by_level(&lens, level);
+        let inside = lt_u32(target, _mm256_srli_epi32::<2>(len));
+        if _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(inside, visit))) != 0 {
+            return Err(Abandon);
+        }
+        let header = _mm256_mask_i32gather_epi32::<1>(
+            zero,
+            base,
+            _mm256_add_epi32(by_level(&offsets, level), _mm256_slli_epi32::<2>(target)),
+            visit,
+        );
+        let (ox, oy, oz) = (ldf!(g.ox), ldf!(g.oy), ldf!(g.oz));
+        let (ix, iy, iz) = (ldf!(g.ix), ldf!(g.iy), ldf!(g.iz));
+        let (mut px, mut py, mut pz) = (ldf!(g.px), ldf!(g.py), ldf!(g.pz));
+        let mut size = ldf!(g.size);
+        let half = _mm256_mul_ps(size, _mm256_set1_ps(0.5));
+        // The plane parameters, as `resume` computes them: (p - o) * inv.
+        let plane = |p: __m256, o: __m256, i: __m256| _mm256_mul_ps(_mm256_sub_ps(p, o), i);
+        let t_lo = [plane(px, ox, ix), plane(py, oy, iy), plane(pz, oz, iz)];
+        let t_mid = [
+            plane(_mm256_add_ps(px, half), ox, ix),
+            plane(_mm256_add_ps(py, half), oy, iy),
+            plane(_mm256_add_ps(pz, half), oz, iz),
+        ];
+        let t_hi = [
+            plane(_mm256_add_ps(px, size), ox, ix),
+            plane(_mm256_add_ps(py, size), oy, iy),
+            plane(_mm256_add_ps(pz, size), oz, iz),
+        ];
+        // `max`/`min` of tracer.rs are `_mm256_max_ps`/`_mm256_min_ps` exactly
+        // (the second operand unless the first is strictly greater/less).
+        let enter = _mm256_max_ps(
+            _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
+            ldf!(g.tmin),
+        );
+        let exit = _mm256_min_ps(
+            _mm256_min_ps(_mm256_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
+            ldf!(g.tmax),
+        );
+        let nonempty = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit));
+        // The CHAIN key, as `chain` computes it.
+        let le_enter = t_mid.map(|t| _mm256_cmp_ps::<_CMP_LE_OQ>(t, enter));
+        let crossing = t_mid.map(|t| {
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(t, enter),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(t, exit),
+            )
+        });
+        let order = [
+            _mm256_cmp_ps::<_CMP_LT_OQ>(t_mid[0], t_mid[1]),
+            _mm256_cmp_ps::<_CMP_LT_OQ>(t_mid[0], t_mid[2]),
+            _mm256_cmp_ps::<_CMP_LT_OQ>(t_mid[1], t_mid[2]),
+        ];
+        let key = _mm256_or_si256(
+            _mm256_or_si256(bits3(le_enter), _mm256_slli_epi32::<3>(bits3(crossing))),
+            _mm256_slli_epi32::<6>(bits3(order)),
+        );
+        let chain = _mm256_and_si256(
+            _mm256_mask_i32gather_epi32::<1>(
+                zero,
+                CHAIN_PADDED.as_ptr().cast(),
+                _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
+                visit,
+            ),
+            byte,
+        );
+        let node_mask = _mm256_and_si256(header, byte);
+        let visited = _mm256_and_si256(_mm256_and_si256(chain, node_mask), nonempty);
+        let mut word = blend(ldi!(g.word), target, visit);
+        let mut mask = blend(ldi!(g.mask), node_mask, visit);
+        let mut remaining = blend(ldi!(g.remaining), visited, visit);
+
+        // No child left: back to the nearest node of the path that has
+        // children left (the levels with bits in `pending`), at once. The
+        // scalar walk steps back one level at a time through the same frames.
+        let mut pending = ldi!(g.pending);
+        let active = _mm256_or_si256(visit, cont);
+        let empty = _mm256_and_si256(active, _mm256_cmpeq_epi32(remaining, zero));
+        let above = _mm256_and_si256(
+            pending,
+            _mm256_sub_epi32(_mm256_sllv_epi32(one, level), one),
+        );
+        let at_top = _mm256_and_si256(empty, _mm256_cmpeq_epi32(above, zero));
+        let pop = _mm256_andnot_si256(at_top, empty);
+        // The highest set bit of `above`: the exponent of its (exact) float.
+        let highest = _mm256_sub_epi32(
+            _mm256_srli_epi32::<23>(_mm256_castps_si256(_mm256_cvtepi32_ps(above))),
+            _mm256_set1_epi32(127),
+        );
+        level = blend(level, highest, pop);
+        let lane_bytes = _mm256_setr_epi32(0, 256, 512, 768, 1024, 1280, 1536, 1792);
+        const _: () = assert!(std::mem::size_of::<Stack>() == 256);
+        let frame_at = _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(level));
+        let stacks: *const i32 = g.stacks.as_ptr().cast();
+        word = _mm256_mask_i32gather_epi32::<1>(word, stacks, frame_at, pop);
+        let f_bits = _mm256_mask_i32gather_epi32::<1>(zero, stacks.add(1), frame_at, pop);
+        mask = blend(mask, _mm256_and_si256(f_bits, byte), pop);
+        remaining = blend(
+            remaining,
+            _mm256_and_si256(_mm256_srli_epi32::<8>(f_bits), byte),
+            pop,
+        );
+        // That node's corner and edge: the corner of the cell of its level
+        // that holds the current one (exact integers).
+        let edge = _mm256_sllv_epi32(one, _mm256_sub_epi32(_mm256_set1_epi32(s.depth), level));
+        let corner = |p: __m256| {
+            let cell = _mm256_and_si256(_mm256_cvttps_epi32(p), _mm256_sub_epi32(zero, edge));
+            _mm256_blendv_ps(p, _mm256_cvtepi32_ps(cell), _mm256_castsi256_ps(pop))
+        };
+        px = corner(px);
+        py = corner(py);
+        pz = corner(pz);
+        size = _mm256_blendv_ps(size, _mm256_cvtepi32_ps(edge), _mm256_castsi256_ps(pop));
+        let half = _mm256_mul_ps(size, _mm256_set1_ps(0.5));
+
+        // The next child, front to back, and its pointer.
+        let choose = _mm256_andnot_si256(at_top, active);
+        let child = _mm256_and_si256(
+            _mm256_mask_i32gather_epi32::<1>(
+                zero,
+                FIRST_PADDED.as_ptr().cast(),
+                _mm256_or_si256(_mm256_slli_epi32::<8>(neg), remaining),
+                choose,
+            ),
+            byte,
+        );
+        let bit = _mm256_and_si256(_mm256_sllv_epi32(one, child), choose);
+        remaining = _mm256_andnot_si256(bit, remaining);
+        let level_bit = _mm256_sllv_epi32(one, level);
+        pending = _mm256_or_si256(
+            _mm256_andnot_si256(level_bit, pending),
+            _mm256_andnot_si256(_mm256_cmpeq_epi32(remaining, zero), level_bit),
+        );
+        let rank = popcount8(_mm256_and_si256(mask, _mm256_sub_epi32(bit, one)));
+        let len = by_level(&lens, level);
+        let width = by_level(&widths, level);
+        // The low `width` bytes: all of them for width 4 (a shift by 32 gives 0).
+        let pointer_mask =
+            _mm256_sub_epi32(_mm256_sllv_epi32(one, _mm256_slli_epi32::<3>(width)), one);
+        let at = _mm256_add_epi32(
+            _mm256_add_epi32(_mm256_slli_epi32::<2>(word), _mm256_set1_epi32(4)),
+            _mm256_mullo_epi32(rank, width),
+        );
+        let cut = _mm256_cmpgt_epi32(_mm256_add_epi32(at, _mm256_set1_epi32(4)), len);
+        let fast = _mm256_andnot_si256(cut, choose);
+        let pointer = _mm256_and_si256(
+            _mm256_mask_i32gather_epi32::<1>(
+                zero,
+                base,
+                _mm256_add_epi32(by_level(&offsets, level), at),
+                fast,
+            ),
+            pointer_mask,
+        );
+        let m = axis_masks(_mm256_xor_si256(child, neg));
+        let cx = _mm256_add_ps(px, _mm256_and_ps(half, m[0]));
+        let cy = _mm256_add_ps(py, _mm256_and_ps(half, m[1]));
+        let cz = _mm256_add_ps(pz, _mm256_and_ps(half, m[2]));
+        // The frame of this node, to come back to: written below, lane by
+        // lane (the lanes that choose no child write to the unused last slot).
+        sti!(word_out, word);
+        sti!(
+            bits_out,
+            _mm256_or_si256(
+                _mm256_or_si256(mask, _mm256_slli_epi32::<8>(remaining)),
+                _mm256_slli_epi32::<16>(child),
+            )
+        );
+        sti!(
+            level_out,
+            blend(_mm256_set1_epi32(LEVEL_SLOTS as i32 - 1), level, choose)
+        );
+        let child_level = _mm256_add_epi32(level, one);
+        let at_stop = _mm256_and_si256(choose, _mm256_cmpeq_epi32(child_level, ldi!(g.stop)));
+        // What to prefetch: the child's header, or the brick's leaf mask.
+        let scale = _mm256_blendv_epi8(_mm256_set1_epi32(2), _mm256_set1_epi32(3), at_stop);
+        sti!(
+            fetch_out,
+            _mm256_add_epi32(
+                by_level(&offsets, child_level),
+                _mm256_sllv_epi32(pointer, scale)
+            )
+        );
+        let report = ldi!(g.report);
+        let found = _mm256_and_si256(at_stop, report);
+        let brick = _mm256_andnot_si256(report, at_stop);
+        let descend = _mm256_andnot_si256(at_stop, choose);
+        let mut next = blend(state, _mm256_set1_epi32(state::CONT), active);
+        next = blend(next, _mm256_set1_epi32(state::VISIT), descend);
+        next = blend(next, _mm256_set1_epi32(state::BRICK), brick);
+        next = blend(next, _mm256_set1_epi32(state::FOUND), found);
+        next = blend(next, _mm256_set1_epi32(state::MISS), at_top);
+        let descend_f = _mm256_castsi256_ps(descend);
+        let stop_f = _mm256_castsi256_ps(at_stop);
+        sti!(g.state, next);
+        sti!(g.level, blend(level, child_level, descend));
+        stf!(g.px, _mm256_blendv_ps(px, cx, descend_f));
+        stf!(g.py, _mm256_blendv_ps(py, cy, descend_f));
+        stf!(g.pz, _mm256_blendv_ps(pz, cz, descend_f));
+        stf!(g.size, _mm256_blendv_ps(size, half, descend_f));
+        stf!(g.bx, _mm256_blendv_ps(ldf!(g.bx), cx, stop_f));
+        stf!(g.by, _mm256_blendv_ps(ldf!(g.by), cy, stop_f));
+        stf!(g.bz, _mm256_blendv_ps(ldf!(g.bz), cz, stop_f));
+        sti!(g.target, blend(target, pointer, choose));
+        sti!(g.word, word);
+        sti!(g.mask, mask);
+        sti!(g.remaining, remaining);
+        sti!(g.pending, pending);
+        let lanes = |v: __m256i| _mm256_movemask_ps(_mm256_castsi256_ps(v)) as u32;
+        choose_bits = lanes(choose);
+        slow_bits = lanes(_mm256_and_si256(cut, choose));
+        if slow_bits != 0 {
+            sti!(rank_out, rank);
+        }
+        done_bits = lanes(_mm256_or_si256(at_stop, at_top));
+    }
+
+    // Scalar tail: frames and prefetches, then pointers near a section's end.
+    for lane in 0..W {
+        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
+        let [mask, remaining, last, _] = bits_out[lane].to_le_bytes();
+        g.stacks[lane][level] = Frame {
+            word: word_out[lane] as u32,
+            mask,
+            remaining,
+            last,
+            _pad: 0,
+        };
+        // A prefetch never faults: lanes without a child fetch some byte of
+        // the file, and a wrong pointer just fetches a useless line.
+        prefetch_any(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
+    }
+    let mut lanes = slow_bits & choose_bits;
+    while lanes != 0 {
+        let lane = lanes.trailing_zeros() as usize;
+        lanes &= lanes - 1;
+        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
+        let mut fault = None;
+        let pointer = tracer.levels[level].pointer_or_fault(
+            level as u8,
+            word_out[lane] as u32,
+            rank_out[lane] as u32,
+            &mut fault,
+        );
+        if fault.is_some() {
+            return Err(Abandon);
+        }
+        g.target[lane] = pointer as i32;
+    }
+    Ok(done_bits)
+}
+
+/// Prefetches the cache line at `at`, which need not be a valid address.
+#[inline(always)]
+fn prefetch_any(at: *const u8) {
+    // SAFETY: a prefetch is a hint that never faults, whatever the address.
+    unsafe { _mm_prefetch::<_MM_HINT_T0>(at.cast()) }
+}
+
+/// The entries of a per-level table (`[i32; LEVEL_TABLE]` as three vectors)
+/// for each lane's level (< `LEVEL_TABLE`), by in-register permutes.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn by_level(table: &[__m256i; 3], level: __m256i) -> __m256i {
+    let low = _mm256_permutevar8x32_epi32(table[0], level);
+    let mid = _mm256_permutevar8x32_epi32(table[1], level);
+    let high = _mm256_permutevar8x32_epi32(table[2], level);
+    let v = blend(low, mid, _mm256_cmpgt_epi32(level, _mm256_set1_epi32(7)));
+    blend(v, high, _mm256_cmpgt_epi32(level, _mm256_set1_epi32(15)))
+}
+
+/// `a < b` as unsigned 32-bit integers.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lt_u32(a: __m256i, b: __m256i) -> __m256i {
+    let sign = _mm256_set1_epi32(i32::MIN);
+    _mm256_cmpgt_epi32(_mm256_xor_si256(b, sign), _mm256_xor_si256(a, sign))
+}
+
+/// `b` where `m` is set, else `a` (per 32-bit lane; `m` all ones or zeros).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn blend(a: __m256i, b: __m256i, m: __m256i) -> __m256i {
+    _mm256_blendv_epi8(a, b, m)
+}
+
+/// Three comparison masks as bits 0, 1 and 2.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn bits3(m: [__m256; 3]) -> __m256i {
+    let bit = |m: __m256, b: i32| _mm256_and_si256(_mm256_castps_si256(m), _mm256_set1_epi32(b));
+    _mm256_or_si256(_mm256_or_si256(bit(m[0], 1), bit(m[1], 2)), bit(m[2], 4))
+}
+
+/// Per axis, all ones where bit `axis` of the child index `c` is set: the
+/// upper half on that axis.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn axis_masks(c: __m256i) -> [__m256; 3] {
+    [1, 2, 4].map(|b| {
+        let b = _mm256_set1_epi32(b);
+        _mm256_castsi256_ps(_mm256_cmpeq_epi32(_mm256_and_si256(c, b), b))
+    })
+}
+
+/// Set bits of each lane's low byte (the lanes hold values below 256).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn popcount8(v: __m256i) -> __m256i {
+    let nibbles = _mm256_setr_epi8(
+        0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3,
+        3, 4,
+    );
+    let low = _mm256_set1_epi32(0x0f);
+    let lo = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(v, low));
+    let hi = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(_mm256_srli_epi32::<4>(v), low));
+    _mm256_add_epi32(lo, hi)
+}

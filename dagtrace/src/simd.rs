@@ -30,10 +30,12 @@
 use std::arch::x86_64::*;
 
 use dagfmt::batch::{Hit, Ray};
-use glam::Vec3A;
+use glam::{BVec3A, Vec3A};
 
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
-use crate::tracer::{Begun, Cell, Frame, LEVEL_SLOTS, Stack, TraceError, Tracer, Walk};
+use crate::tracer::{
+    Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
+};
 
 /// Rays to a vector.
 const W: usize = 8;
@@ -262,7 +264,7 @@ fn run(
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
     let count = rays.len().min(hits.len());
-    let mut next = 0;
+    let mut ahead = Ahead::default();
     // Per group: the lanes that need scalar work (an answer, a brick, a new ray).
     let mut attention = [(1u32 << W) - 1; GROUPS];
     let mut busy = [0u32; GROUPS];
@@ -299,7 +301,7 @@ fn run(
                         // Idle: a new ray, below.
                         group.state[lane] = state::IDLE;
                         busy[g] &= !(1 << lane);
-                        refill(tracer, group, lane, &mut next, &rays[..count], hits)?;
+                        refill(tracer, group, lane, &mut ahead, &rays[..count], hits)?;
                         if group.state[lane] != state::IDLE {
                             busy[g] |= 1 << lane;
                         }
@@ -312,7 +314,7 @@ fn run(
                     .map_err(|_| Abandon)?;
                 group.state[lane] = state::IDLE;
                 busy[g] &= !(1 << lane);
-                refill(tracer, group, lane, &mut next, &rays[..count], hits)?;
+                refill(tracer, group, lane, &mut ahead, &rays[..count], hits)?;
                 if group.state[lane] != state::IDLE {
                     busy[g] |= 1 << lane;
                 }
@@ -331,24 +333,63 @@ fn run(
     }
 }
 
+/// Rays set up ahead, four at a time ([`setup4`]), for [`refill`].
+#[derive(Default)]
+struct Ahead {
+    /// Index of the first ray of the block.
+    first: usize,
+    /// Rays in the block, and how many of them were handed out.
+    len: usize,
+    taken: usize,
+    /// Bit `k`: ray `first + k` was set up in `prepared[k]`; the others go
+    /// through the scalar [`Tracer::begin`].
+    usual: u32,
+    prepared: [Prepared; 4],
+}
+
 /// Gives `lane` the next ray that needs a traversal, answering on the spot
 /// those that do not; leaves it idle when the rays run out.
 fn refill(
     tracer: &Tracer<'_>,
     group: &mut Group,
     lane: usize,
-    next: &mut usize,
+    ahead: &mut Ahead,
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
-    while *next < rays.len() {
-        let i = *next;
-        *next += 1;
+    loop {
+        if ahead.taken == ahead.len {
+            let first = ahead.first + ahead.len;
+            if first >= rays.len() {
+                return Ok(());
+            }
+            let len = (rays.len() - first).min(4);
+            *ahead = Ahead {
+                first,
+                len,
+                taken: 0,
+                usual: 0,
+                prepared: ahead.prepared,
+            };
+            if let Some(block) = rays[first..].first_chunk::<4>() {
+                if !tracer.empty {
+                    // SAFETY: `trace_lanes` is only called where `available()`
+                    // found AVX2.
+                    ahead.usual = unsafe { setup4(tracer, block, &mut ahead.prepared) };
+                }
+            }
+        }
+        let k = ahead.taken;
+        ahead.taken += 1;
+        let i = ahead.first + k;
         let mut fault = None;
-        match tracer
-            .begin(&rays[i], &mut group.stacks[lane], &mut fault)
-            .map_err(|_| Abandon)?
-        {
+        let stack = &mut group.stacks[lane];
+        let begun = if ahead.usual >> k & 1 == 1 {
+            tracer.begin_prepared(&ahead.prepared[k & 3], stack, &mut fault)
+        } else {
+            tracer.begin(&rays[i], stack, &mut fault)
+        };
+        match begun.map_err(|_| Abandon)? {
             Begun::Done(hit) => hits[i] = hit,
             Begun::Walk(walk) => {
                 group.load(lane, i, walk);
@@ -356,7 +397,144 @@ fn refill(
             }
         }
     }
-    Ok(())
+}
+
+/// [`Tracer::setup`] of four rays at once, in `f64` vectors with the very
+/// same operations, for the usual rays: full depth, ordered finite bounds,
+/// finite origin not far from the cube, and no direction component small
+/// enough to be treated as zero. Writes the prepared ray of each usual ray
+/// (exactly what `setup` gives) and returns them as a bit mask; the others
+/// are left to `setup`.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+unsafe fn setup4(tracer: &Tracer<'_>, rays: &[Ray; 4], out: &mut [Prepared; 4]) -> u32 {
+    let f = |get: &dyn Fn(&Ray) -> f32| {
+        _mm256_setr_pd(
+            f64::from(get(&rays[0])),
+            f64::from(get(&rays[1])),
+            f64::from(get(&rays[2])),
+            f64::from(get(&rays[3])),
+        )
+    };
+    let o = [
+        f(&|r| r.origin[0]),
+        f(&|r| r.origin[1]),
+        f(&|r| r.origin[2]),
+    ];
+    let d = [f(&|r| r.dir[0]), f(&|r| r.dir[1]), f(&|r| r.dir[2])];
+    let (tmin, tmax) = (f(&|r| r.tmin), f(&|r| r.tmax));
+    let full_depth = rays
+        .iter()
+        .enumerate()
+        .fold(0, |m, (k, r)| m | u32::from(r.level.is_none()) << k);
+
+    let scale = _mm256_set1_pd(tracer.grid_scale);
+    let origin: [__m256d; 3] = std::array::from_fn(|a| {
+        _mm256_mul_pd(
+            _mm256_sub_pd(o[a], _mm256_set1_pd(tracer.root_min[a])),
+            scale,
+        )
+    });
+    let dir = d.map(|d| _mm256_mul_pd(d, scale));
+    let abs = |v: __m256d| _mm256_andnot_pd(_mm256_set1_pd(-0.0), v);
+    let resolution = (1u64 << tracer.depth) as f64;
+    let largest = _mm256_max_pd(_mm256_max_pd(abs(dir[0]), abs(dir[1])), abs(dir[2]));
+    // Every test is written so that a NaN fails it.
+    let mut usual = _mm256_cmp_pd::<_CMP_LE_OQ>(tmin, tmax);
+    let below = |v: __m256d, limit: f64| _mm256_cmp_pd::<_CMP_LT_OQ>(v, _mm256_set1_pd(limit));
+    for a in 0..3 {
+        // Finite and not far: |o| <= 16 cube sizes (so `setup` does not re-base).
+        let near = _mm256_cmp_pd::<_CMP_LE_OQ>(abs(origin[a]), _mm256_set1_pd(resolution * 16.0));
+        // Not treated as zero: |d| >= largest * TINY_DIRECTION.
+        let moving = _mm256_cmp_pd::<_CMP_GE_OQ>(
+            abs(dir[a]),
+            _mm256_mul_pd(largest, _mm256_set1_pd(TINY_DIRECTION)),
+        );
+        usual = _mm256_and_pd(usual, _mm256_and_pd(near, moving));
+        usual = _mm256_and_pd(usual, below(abs(dir[a]), f64::INFINITY));
+    }
+    // A largest component that is normal and whose power-of-two scale has
+    // an inverse (exponent 1 ..= 2045), as in `prepare`.
+    usual = _mm256_and_pd(
+        usual,
+        _mm256_cmp_pd::<_CMP_GE_OQ>(largest, _mm256_set1_pd(f64::MIN_POSITIVE)),
+    );
+    usual = _mm256_and_pd(usual, below(largest, f64::from_bits(2046 << 52)));
+    let usual = _mm256_movemask_pd(usual) as u32 & full_depth;
+    if usual == 0 {
+        return 0;
+    }
+
+    // `prepare`, with base 0.
+    let scale_bits = _mm256_and_si256(
+        _mm256_castpd_si256(largest),
+        _mm256_set1_epi64x(0x7ff0_0000_0000_0000),
+    );
+    let exponent = _mm256_srli_epi64::<52>(scale_bits);
+    let inv_scale = _mm256_castsi256_pd(_mm256_slli_epi64::<52>(_mm256_sub_epi64(
+        _mm256_set1_epi64x(2046),
+        exponent,
+    )));
+    let scale = _mm256_castsi256_pd(scale_bits);
+    let scaled = dir.map(|d| _mm256_mul_pd(abs(d), inv_scale));
+    let reciprocal = _mm256_div_pd(
+        _mm256_set1_pd(1.0),
+        _mm256_mul_pd(_mm256_mul_pd(scaled[0], scaled[1]), scaled[2]),
+    );
+    let inverse = [
+        _mm256_mul_pd(_mm256_mul_pd(reciprocal, scaled[1]), scaled[2]),
+        _mm256_mul_pd(_mm256_mul_pd(reciprocal, scaled[0]), scaled[2]),
+        _mm256_mul_pd(_mm256_mul_pd(reciprocal, scaled[0]), scaled[1]),
+    ];
+    let mut neg = [0u32; 4];
+    let mut o32 = [[0f32; 4]; 3];
+    let mut inv32 = [[0f32; 4]; 3];
+    for a in 0..3 {
+        // origin + base * dir with base 0, then mirrored where dir < 0.
+        let o = _mm256_add_pd(origin[a], _mm256_mul_pd(_mm256_setzero_pd(), dir[a]));
+        let negative = _mm256_cmp_pd::<_CMP_LT_OQ>(dir[a], _mm256_setzero_pd());
+        let o = _mm256_blendv_pd(o, _mm256_sub_pd(_mm256_set1_pd(resolution), o), negative);
+        let bits = _mm256_movemask_pd(negative) as u32;
+        for (k, n) in neg.iter_mut().enumerate() {
+            *n |= (bits >> k & 1) << a;
+        }
+        // SAFETY: stores of four floats into four-float arrays.
+        unsafe {
+            _mm_storeu_ps(o32[a].as_mut_ptr(), _mm256_cvtpd_ps(o));
+            _mm_storeu_ps(inv32[a].as_mut_ptr(), _mm256_cvtpd_ps(inverse[a]));
+        }
+    }
+    let mut t = [[0f32; 4]; 2];
+    let mut inv_scales = [0f64; 4];
+    // SAFETY: stores of four values into four-value arrays.
+    unsafe {
+        _mm_storeu_ps(
+            t[0].as_mut_ptr(),
+            _mm256_cvtpd_ps(_mm256_mul_pd(tmin, scale)),
+        );
+        _mm_storeu_ps(
+            t[1].as_mut_ptr(),
+            _mm256_cvtpd_ps(_mm256_mul_pd(tmax, scale)),
+        );
+        _mm256_storeu_pd(inv_scales.as_mut_ptr(), inv_scale);
+    }
+    for (k, p) in out.iter_mut().enumerate() {
+        *p = Prepared {
+            origin: Vec3A::new(o32[0][k], o32[1][k], o32[2][k]),
+            inv_dir: Vec3A::new(inv32[0][k], inv32[1][k], inv32[2][k]),
+            tmin: t[0][k],
+            tmax: t[1][k],
+            neg: neg[k] as usize,
+            moving: BVec3A::new(true, true, true),
+            level: tracer.depth,
+            inv_scale: inv_scales[k],
+            base: 0.0,
+        };
+    }
+    usual
 }
 
 macro_rules! ldf {
@@ -739,4 +917,107 @@ fn popcount8(v: __m256i) -> __m256i {
     let lo = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(v, low));
     let hi = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(_mm256_srli_epi32::<4>(v), low));
     _mm256_add_epi32(lo, hi)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tracer::Setup;
+    use dagfmt::Dag;
+    use dagfmt::builder::DagBuilder;
+    use dagfmt::layout::AttributeKind;
+
+    /// splitmix64.
+    struct Rng(u64);
+
+    impl Rng {
+        fn next(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        }
+
+        fn range(&mut self, lo: f32, hi: f32) -> f32 {
+            lo + (hi - lo) * (self.next() >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// A float that is often one of the values the set-up treats specially.
+    fn special(rng: &mut Rng, usual: f32) -> f32 {
+        match rng.next() % 16 {
+            0 => 0.0,
+            1 => -0.0,
+            2 => f32::NAN,
+            3 => f32::INFINITY,
+            4 => 1e-30,
+            5 => 3e37,
+            6 => usual * 1e-19,
+            7 => usual * 1e6,
+            _ => usual,
+        }
+    }
+
+    #[test]
+    fn vector_set_up_is_the_set_up_of_each_ray() {
+        if !available() {
+            eprintln!("no AVX2 on this processor: the vector set-up was not tested");
+            return;
+        }
+        let built = DagBuilder::from_voxels(
+            9,
+            AttributeKind::VoxelCount,
+            vec![[3, 4, 5], [200, 100, 50], [511, 0, 300]],
+        )
+        .expect("valid voxels");
+        let bytes = built.to_bytes();
+        let dag = Dag::open(&bytes).expect("built DAG opens");
+        let tracer = Tracer::new(&dag).expect("tracer");
+        let mut rng = Rng(5);
+        let (mut usual, mut unusual) = (0, 0);
+        for round in 0..20_000 {
+            let rays: [Ray; 4] = std::array::from_fn(|_| {
+                let odd = round % 4 == 0;
+                let mut value = |lo: f32, hi: f32| {
+                    let v = rng.range(lo, hi);
+                    if odd { special(&mut rng, v) } else { v }
+                };
+                Ray {
+                    origin: [value(-20.0, 20.0), value(-1.0, 2.0), value(-1.0, 2.0)],
+                    dir: [value(-1.0, 1.0), value(-1.0, 1.0), value(-1.0, 1.0)],
+                    tmin: value(-1.0, 1.0),
+                    tmax: value(-1.0, 5.0),
+                    level: None,
+                }
+            });
+            let mut rays = rays;
+            for ray in &mut rays {
+                if rng.next() % 3 == 0 {
+                    ray.tmax = f32::INFINITY;
+                }
+                if rng.next() % 13 == 0 {
+                    ray.level = Some((rng.next() % 10) as u8);
+                }
+            }
+            let mut prepared = [Prepared::default(); 4];
+            // SAFETY: AVX2 was found above.
+            let mask = unsafe { setup4(&tracer, &rays, &mut prepared) };
+            for (k, ray) in rays.iter().enumerate() {
+                if mask >> k & 1 == 1 {
+                    usual += 1;
+                    match tracer.setup(ray) {
+                        Ok(Setup::Trace(p)) => assert_eq!(p, prepared[k], "{ray:?}"),
+                        _ => panic!("set up in vectors, but not traced by setup: {ray:?}"),
+                    }
+                } else {
+                    unusual += 1;
+                }
+            }
+        }
+        assert!(
+            usual > 40_000 && unusual > 5_000,
+            "{usual} usual, {unusual} not"
+        );
+    }
 }

@@ -31,14 +31,17 @@
 //!    The traversal is a resumable [`Walk`]: it stops before every read of a
 //!    node or leaf below the root, after prefetching it. [`Tracer::trace`]
 //!    resumes at once; the batch API ([`Tracer::trace_sequential_into`], and
-//!    so [`Tracer::trace_batch`], which runs it on every core) keeps [`LANES`]
-//!    rays in flight, resuming them in turn, so that the cache misses of one ray, which bound
-//!    the traversal of large DAGs, overlap with the work on the others. Every
-//!    ray runs through the very same steps either way, so the answers are
-//!    identical. Runs of coherent rays (a shared origin, such as a camera's)
-//!    are traced as packets instead (module `packet`): one beam pass per
-//!    packet finds the coarse occupied cells any of its rays can meet, and each
-//!    ray is traced only through those, with the same steps.
+//!    so [`Tracer::trace_batch`], which runs it on every core) keeps several
+//!    rays in flight, so that the cache misses of one ray, which bound the
+//!    traversal of large DAGs, overlap with the work on the others: where the
+//!    processor has AVX2, 16 rays, eight to a vector, stepped together with
+//!    gathered reads (module `simd`); elsewhere [`LANES`] rays resumed in
+//!    turn. Every ray runs through the very same steps either way, so the
+//!    answers are identical. In DAGs of at most [`PACKET_MAX_DAG_BYTES`], runs
+//!    of coherent rays (a shared origin, such as a camera's) are traced as
+//!    packets instead (module `packet`): one beam pass per packet finds the
+//!    coarse occupied cells any of its rays can meet, and each ray is traced
+//!    only through those, with the same steps.
 //! 3. **Answer.** The first occupied cell found is reported with its entry
 //!    parameter and face, computed from the same plane parameters (the latest
 //!    slab entry of the moving axes, or `tmin` and face 0 when that is earlier),
@@ -291,7 +294,7 @@ pub(crate) struct Prepared {
     /// Level traced.
     pub(crate) level: u8,
     /// The traversal's parameter is `t' = (t - base) * scale`: `1 / scale`.
-    inv_scale: f64,
+    pub(crate) inv_scale: f64,
     pub(crate) base: f64,
 }
 
@@ -587,11 +590,12 @@ impl<'a> Tracer<'a> {
     /// those of [`Tracer::trace`] (up to the choice among tied cells where a
     /// ray of a packet passes exactly through a shared edge or corner, see
     /// below). It is faster than calling it for each ray because it keeps
-    /// several rays in flight and switches between them at every read of the
-    /// DAG, so that the memory latency of one ray's reads is spent advancing
-    /// the others; and because runs of up to 64 consecutive rays with the same
-    /// origin, bounds and level and directions in one octant (primary rays,
-    /// best in tiles: [`crate::camera::CameraFrame::rays_in_tiles`]) are
+    /// several rays in flight, eight to an AVX2 vector where the processor
+    /// has it, so that the memory latency of one ray's reads is spent
+    /// advancing the others; and because, in DAGs small enough for the caches
+    /// ([`PACKET_MAX_DAG_BYTES`]), runs of up to 64 consecutive rays with the
+    /// same origin, bounds and level and directions in one octant (primary
+    /// rays, best in tiles: [`crate::camera::CameraFrame::rays_in_tiles`]) are
     /// traced as packets, sharing one walk of the coarse levels. Fails with
     /// the first error met.
     pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
@@ -714,10 +718,22 @@ impl<'a> Tracer<'a> {
                     }))
                 }
             },
-            Setup::Trace(prepared) => match self.start(&prepared, fault) {
-                Ok(walk) => Ok(Begun::Walk(walk)),
-                Err(cell) => self.finish(&prepared, cell, stack, *fault).map(Begun::Done),
-            },
+            Setup::Trace(prepared) => self.begin_prepared(&prepared, stack, fault),
+        }
+    }
+
+    /// The end of [`Tracer::begin`] for a ray that is traced: the answer
+    /// when no node needs a read, else the walk from the root.
+    #[inline(always)]
+    pub(crate) fn begin_prepared(
+        &self,
+        prepared: &Prepared,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Result<Begun, TraceError> {
+        match self.start(prepared, fault) {
+            Ok(walk) => Ok(Begun::Walk(walk)),
+            Err(cell) => self.finish(prepared, cell, stack, *fault).map(Begun::Done),
         }
     }
 

@@ -371,12 +371,12 @@ fn refill(
                 usual: 0,
                 prepared: ahead.prepared,
             };
-            if let Some(block) = rays[first..].first_chunk::<4>() {
-                if !tracer.empty {
-                    // SAFETY: `trace_lanes` is only called where `available()`
-                    // found AVX2.
-                    ahead.usual = unsafe { setup4(tracer, block, &mut ahead.prepared) };
-                }
+            if let Some(block) = rays[first..].first_chunk::<4>()
+                && !tracer.empty
+            {
+                // SAFETY: `trace_lanes` is only called where `available()`
+                // found AVX2.
+                ahead.usual = unsafe { setup4(tracer, block, &mut ahead.prepared) };
             }
         }
         let k = ahead.taken;
@@ -993,10 +993,10 @@ mod tests {
             });
             let mut rays = rays;
             for ray in &mut rays {
-                if rng.next() % 3 == 0 {
+                if rng.next().is_multiple_of(3) {
                     ray.tmax = f32::INFINITY;
                 }
-                if rng.next() % 13 == 0 {
+                if rng.next().is_multiple_of(13) {
                     ray.level = Some((rng.next() % 10) as u8);
                 }
             }

@@ -657,14 +657,10 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             _mm256_or_si256(bits3(le_enter), _mm256_slli_epi32::<3>(bits3(crossing))),
             _mm256_slli_epi32::<6>(bits3(order)),
         );
-        let chain = _mm256_and_si256(
-            _mm256_mask_i32gather_epi32::<1>(
-                zero,
-                CHAIN_PADDED.as_ptr().cast(),
-                _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
-                visit,
-            ),
-            byte,
+        let chain = table_bytes(
+            &CHAIN_PADDED,
+            _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
+            visit,
         );
         let node_mask = _mm256_and_si256(header, byte);
         let visited = _mm256_and_si256(_mm256_and_si256(chain, node_mask), nonempty);
@@ -717,14 +713,10 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
 
         // The next child, front to back, and its pointer.
         let choose = _mm256_andnot_si256(at_top, active);
-        let child = _mm256_and_si256(
-            _mm256_mask_i32gather_epi32::<1>(
-                zero,
-                FIRST_PADDED.as_ptr().cast(),
-                _mm256_or_si256(_mm256_slli_epi32::<8>(neg), remaining),
-                choose,
-            ),
-            byte,
+        let child = table_bytes(
+            &FIRST_PADDED,
+            _mm256_or_si256(_mm256_slli_epi32::<8>(neg), remaining),
+            choose,
         );
         let bit = _mm256_and_si256(_mm256_sllv_epi32(one, child), choose);
         remaining = _mm256_andnot_si256(bit, remaining);
@@ -871,6 +863,22 @@ fn by_level(table: &[__m256i; 3], level: __m256i) -> __m256i {
     blend(v, high, _mm256_cmpgt_epi32(level, _mm256_set1_epi32(15)))
 }
 
+/// Byte `index` of `table` for the lanes in `lanes`, 0 in the others.
+///
+/// # Safety
+///
+/// The processor must have AVX2, and `index + 4 <= table.len()` in the lanes
+/// of `lanes` (the gather loads 32 bits; the tables are padded for it).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn table_bytes(table: &[u8], index: __m256i, lanes: __m256i) -> __m256i {
+    let zero = _mm256_setzero_si256();
+    // SAFETY: the caller keeps the loads of the lanes in `lanes` inside the table.
+    let words =
+        unsafe { _mm256_mask_i32gather_epi32::<1>(zero, table.as_ptr().cast(), index, lanes) };
+    _mm256_and_si256(words, _mm256_set1_epi32(0xff))
+}
+
 /// `a < b` as unsigned 32-bit integers.
 #[inline]
 #[target_feature(enable = "avx2")]
@@ -923,26 +931,10 @@ fn popcount8(v: __m256i) -> __m256i {
 mod tests {
     use super::*;
     use crate::tracer::Setup;
+    use crate::tracer::tests::Rng;
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
-
-    /// splitmix64.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            z ^ (z >> 31)
-        }
-
-        fn range(&mut self, lo: f32, hi: f32) -> f32 {
-            lo + (hi - lo) * (self.next() >> 40) as f32 / (1u64 << 24) as f32
-        }
-    }
 
     /// A float that is often one of the values the set-up treats specially.
     fn special(rng: &mut Rng, usual: f32) -> f32 {

@@ -1469,15 +1469,15 @@ fn slab_entry(o: &[f64; 3], d: &[f64; 3], tmin: f64, tmax: f64, size: f64) -> Op
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use dagfmt::builder::DagBuilder;
 
-    /// splitmix64.
-    struct Rng(u64);
+    /// splitmix64 (also for the tests of `simd`).
+    pub(crate) struct Rng(pub(crate) u64);
 
     impl Rng {
-        fn next(&mut self) -> u64 {
+        pub(crate) fn next(&mut self) -> u64 {
             self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
             let mut z = self.0;
             z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
@@ -1485,7 +1485,7 @@ mod tests {
             z ^ (z >> 31)
         }
 
-        fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        pub(crate) fn range(&mut self, lo: f32, hi: f32) -> f32 {
             lo + (hi - lo) * (self.next() >> 40) as f32 / (1u64 << 24) as f32
         }
     }

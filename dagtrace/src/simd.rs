@@ -9,14 +9,19 @@
 //! - A [`Group`] holds eight rays in structure-of-arrays form. One call of
 //!   [`step`] advances every busy ray of a group by one step: the visit of a
 //!   node (its header gathered, the plane parameters and the `CHAIN` key
-//!   computed for all eight at once), or one step back to the parent when no
-//!   child is left, then the choice of the next child (`FIRST`), its rank
-//!   (popcount) and its pointer (gathered).
+//!   computed for all eight at once); when no child is left, the step back to
+//!   the nearest ancestor with children left, at once (a per-lane bit mask of
+//!   the levels whose frames have children left finds it; the scalar walk
+//!   climbs one level at a time through the same frames); then the choice of
+//!   the next child (`FIRST`), its rank (popcount) and its pointer (gathered).
 //! - Two groups take turns, and the node each ray goes to next is prefetched,
 //!   so the memory latency of one group's reads is spent on the other group.
+//! - Rays are set up four at a time in `f64` vectors ([`setup4`]), with the
+//!   very same operations as [`Tracer::setup`], when they are usual (full
+//!   depth, finite, no far origin, no direction component treated as zero).
 //! - What is rare or branchy stays scalar, done by the tracer's own functions
-//!   for one ray at a time: the set-up of a ray ([`Tracer::begin`]), the 4³
-//!   brick at the end of a descent ([`Tracer::brick`]), the answer
+//!   for one ray at a time: the set-up of unusual rays ([`Tracer::begin`]),
+//!   the 4³ brick at the end of a descent ([`Tracer::brick`]), the answer
 //!   ([`Tracer::finish`]), and pointers whose 32-bit load would cross the end
 //!   of their section.
 //! - A read outside its level (a malformed file) or any error stops the

@@ -241,7 +241,7 @@ pub(crate) fn trace_lanes(
     let Some(sections) = Sections::new(tracer) else {
         return tracer.trace_lanes_scalar(rays, hits);
     };
-    let mut groups = Box::new([Group::default(); GROUPS]);
+    let mut groups = [Group::default(); GROUPS];
     match run(tracer, &sections, &mut groups, rays, hits) {
         Ok(()) => Ok(()),
         // A fault or an error: trace the batch again one ray at a time, which
@@ -257,7 +257,7 @@ pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &m
     let Some(sections) = Sections::new(tracer) else {
         return false;
     };
-    let mut groups = Box::new([Group::default(); GROUPS]);
+    let mut groups = [Group::default(); GROUPS];
     run(tracer, &sections, &mut groups, rays, hits).is_ok()
 }
 

@@ -91,9 +91,9 @@ const BOUNDS_LEVEL: u8 = 6;
 /// runs of rays as packets. Packets read each node once for many rays, which
 /// wins while the DAG stays in the caches; beyond them, memory latency
 /// dominates and the vector lanes, which keep 16 independent reads in flight,
-/// win. Measured on dragon (trace_bench, machine A): packets were 2.1× the
-/// lanes' rate on 8×8 tiles at depth 10 (1 MB) and 1.9× at depth 12 (14 MB),
-/// but 0.6× at depth 14 (172 MB), and 0.4× on row-order camera rays there.
+/// win. Measured on dragon (trace_bench, machine A): packets were 1.9× the
+/// lanes' rate on 8×8 tiles at depth 10 (1 MB) and 1.4× at depth 12 (14 MB),
+/// but 0.6× at depth 14 (172 MB), and 0.44× on row-order camera rays there.
 pub(crate) const PACKET_MAX_DAG_BYTES: usize = 64 << 20;
 
 /// Direction given to axes whose direction is (treated as) zero, relative to a

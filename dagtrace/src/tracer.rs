@@ -414,9 +414,6 @@ pub struct Tracer<'a> {
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
     compute_index: bool,
-    /// Whether the batch lanes may use the vector traversal (`simd`); off
-    /// only in tests that check the two against each other.
-    pub(crate) vector_lanes: bool,
     /// Whether batches trace coherent runs as packets: only for DAGs of at
     /// most [`PACKET_MAX_DAG_BYTES`] (see there).
     pub(crate) packets: bool,
@@ -468,7 +465,6 @@ impl<'a> Tracer<'a> {
             cell_size,
             saturated: FxHashMap::default(),
             compute_index: true,
-            vector_lanes: true,
             packets: dag.levels().iter().map(|l| l.bytes.len()).sum::<usize>()
                 <= PACKET_MAX_DAG_BYTES,
             colors: dag.colors(),
@@ -634,7 +630,7 @@ impl<'a> Tracer<'a> {
             return Ok(());
         }
         #[cfg(target_arch = "x86_64")]
-        if self.vector_lanes && crate::simd::available() {
+        if crate::simd::available() {
             return crate::simd::trace_lanes(self, rays, hits);
         }
         self.trace_lanes_scalar(rays, hits)

@@ -261,6 +261,9 @@ pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &m
     run(tracer, &sections, &mut groups, rays, hits).is_ok()
 }
 
+/// The vector traversal of `rays` into `hits`: the groups step in turn, and
+/// between their steps the lanes they flagged get their scalar work (a brick
+/// test, an answer, a new ray). `Err` when a fault or an error stopped it.
 fn run(
     tracer: &Tracer<'_>,
     sections: &Sections,
@@ -303,7 +306,9 @@ fn run(
                     }
                     state::MISS => None,
                     _ => {
-                        // Idle: a new ray, below.
+                        // Idle (only at the start: steps flag the three
+                        // states above): a new ray.
+                        debug_assert_eq!(group.state[lane], state::IDLE);
                         group.state[lane] = state::IDLE;
                         busy[g] &= !(1 << lane);
                         refill(tracer, group, lane, &mut ahead, &rays[..count], hits)?;

@@ -238,27 +238,24 @@ pub(crate) fn trace_lanes(
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), TraceError> {
-    let Some(sections) = Sections::new(tracer) else {
-        return tracer.trace_lanes_scalar(rays, hits);
-    };
+    // A fault or an error (or sections that 32-bit offsets cannot address):
+    // trace the batch again one ray at a time, which reports the first error
+    // met exactly as it always does.
+    try_trace_lanes(tracer, rays, hits).or_else(|Abandon| tracer.trace_lanes_scalar(rays, hits))
+}
+
+/// [`trace_lanes`] without the scalar fallback.
+fn try_trace_lanes(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> Result<(), Abandon> {
+    let sections = Sections::new(tracer).ok_or(Abandon)?;
     let mut groups = [Group::default(); GROUPS];
-    match run(tracer, &sections, &mut groups, rays, hits) {
-        Ok(()) => Ok(()),
-        // A fault or an error: trace the batch again one ray at a time, which
-        // reports the first error met exactly as it always does.
-        Err(Abandon) => tracer.trace_lanes_scalar(rays, hits),
-    }
+    run(tracer, &sections, &mut groups, rays, hits)
 }
 
 /// [`trace_lanes`] without the scalar fallback: `false` when the vector
 /// traversal gave up (on valid DAGs it never should).
 #[cfg(test)]
 pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> bool {
-    let Some(sections) = Sections::new(tracer) else {
-        return false;
-    };
-    let mut groups = [Group::default(); GROUPS];
-    run(tracer, &sections, &mut groups, rays, hits).is_ok()
+    try_trace_lanes(tracer, rays, hits).is_ok()
 }
 
 /// The vector traversal of `rays` into `hits`: the groups step in turn, and
@@ -282,7 +279,8 @@ fn run(
             while lanes != 0 {
                 let lane = lanes.trailing_zeros() as usize;
                 lanes &= lanes - 1;
-                let cell: Option<Cell> = match group.state[lane] {
+                // The answer of a lane that is done (`None` for an idle lane).
+                let answer: Option<Option<Cell>> = match group.state[lane] {
                     state::BRICK => {
                         let walk = &group.walks[lane];
                         let leaf = group.target[lane] as u32;
@@ -293,7 +291,7 @@ fn run(
                             return Err(Abandon);
                         }
                         match found {
-                            Some((cell, level)) => Some((cell, level, leaf)),
+                            Some((cell, level)) => Some(Some((cell, level, leaf))),
                             None => {
                                 group.state[lane] = state::CONT;
                                 continue;
@@ -302,26 +300,26 @@ fn run(
                     }
                     state::FOUND => {
                         let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
-                        Some((at, group.walks[lane].stop, group.target[lane] as u32))
+                        Some(Some((
+                            at,
+                            group.walks[lane].stop,
+                            group.target[lane] as u32,
+                        )))
                     }
-                    state::MISS => None,
-                    _ => {
-                        // Idle (only at the start: steps flag the three
-                        // states above): a new ray.
-                        debug_assert_eq!(group.state[lane], state::IDLE);
-                        group.state[lane] = state::IDLE;
-                        busy[g] &= !(1 << lane);
-                        refill(tracer, group, lane, &mut ahead, &rays[..count], hits)?;
-                        if group.state[lane] != state::IDLE {
-                            busy[g] |= 1 << lane;
-                        }
-                        continue;
+                    state::MISS => Some(None),
+                    // Idle: only at the start (steps flag the three states above).
+                    other => {
+                        debug_assert_eq!(other, state::IDLE);
+                        None
                     }
                 };
-                let walk = &group.walks[lane];
-                hits[group.ray[lane]] = tracer
-                    .finish(&walk.ray(), cell, &group.stacks[lane], None)
-                    .map_err(|_| Abandon)?;
+                if let Some(cell) = answer {
+                    let walk = &group.walks[lane];
+                    hits[group.ray[lane]] = tracer
+                        .finish(&walk.ray(), cell, &group.stacks[lane], None)
+                        .map_err(|_| Abandon)?;
+                }
+                // A new ray for the lane, if any is left.
                 group.state[lane] = state::IDLE;
                 busy[g] &= !(1 << lane);
                 refill(tracer, group, lane, &mut ahead, &rays[..count], hits)?;
@@ -374,13 +372,10 @@ fn refill(
                 return Ok(());
             }
             let len = (rays.len() - first).min(4);
-            *ahead = Ahead {
-                first,
-                len,
-                taken: 0,
-                usual: 0,
-                prepared: ahead.prepared,
-            };
+            ahead.first = first;
+            ahead.len = len;
+            ahead.taken = 0;
+            ahead.usual = 0;
             if let Some(block) = rays[first..].first_chunk::<4>()
                 && !tracer.empty
             {

@@ -143,7 +143,7 @@ pub(crate) struct Level<'a> {
     /// Pointer width in bytes (node levels).
     pub(crate) width: u32,
     /// Mask keeping the low `width` bytes of a 32-bit load.
-    pub(crate) pointer_mask: u32,
+    pointer_mask: u32,
 }
 
 impl Level<'_> {

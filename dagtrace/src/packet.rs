@@ -340,6 +340,62 @@ impl ChainTests {
 /// levels above the voxels, the bricks 2), rounded up to a power of two.
 const SUBTREE_SLOTS: usize = 4;
 
+/// Rays that may join a packet, found by [`scan_ray`] (one ray) or
+/// `simd::scan_for_packet` (eight): how many of the scanned rays, from the
+/// first, may join, and over those the ranges of `|d_a|` and the smallest
+/// `|d|²` (empty ranges and an infinite `|d|²` when none may).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct ScannedRays {
+    pub(crate) len: usize,
+    pub(crate) lo: Vec3A,
+    pub(crate) hi: Vec3A,
+    pub(crate) shortest: f32,
+}
+
+impl ScannedRays {
+    /// No ray may join.
+    pub(crate) const NONE: ScannedRays = ScannedRays {
+        len: 0,
+        lo: Vec3A::INFINITY,
+        hi: Vec3A::ZERO,
+        shortest: f32::INFINITY,
+    };
+}
+
+/// Whether `r` may join a packet that `first` starts: the same origin and
+/// bounds bit for bit, the same level, the same signs of the direction (the
+/// same octant), and no direction component treated as zero (or nearly), NaN
+/// or infinite.
+#[inline(always)]
+pub(crate) fn scan_ray(r: &Ray, first: &Ray) -> ScannedRays {
+    let bits = |r: &Ray| [r.origin[0], r.origin[1], r.origin[2], r.tmin, r.tmax].map(f32::to_bits);
+    let (b, f) = (bits(r), bits(first));
+    let differ = (b[0] ^ f[0])
+        | (b[1] ^ f[1])
+        | (b[2] ^ f[2])
+        | (b[3] ^ f[3])
+        | (b[4] ^ f[4])
+        | ((r.dir[0].to_bits() ^ first.dir[0].to_bits())
+            | (r.dir[1].to_bits() ^ first.dir[1].to_bits())
+            | (r.dir[2].to_bits() ^ first.dir[2].to_bits()))
+            >> 31;
+    let d = Vec3A::from_array(r.dir);
+    let m = d.abs();
+    let d2 = d.length_squared();
+    // Written so that a NaN fails (a NaN or infinite component makes `d2`
+    // NaN or infinite).
+    let regular = m.min_element() > m.max_element() * 1e-6 && d2 < f32::INFINITY;
+    if differ != 0 || r.level != first.level || !regular {
+        return ScannedRays::NONE;
+    }
+    ScannedRays {
+        len: 1,
+        lo: m,
+        hi: m,
+        shortest: d2,
+    }
+}
+
 /// The resumable depth-first beam walk.
 struct BeamWalk {
     frames: [BeamFrame; LEVEL_SLOTS],
@@ -421,15 +477,6 @@ impl Tracer<'_> {
         // axis, the range of |d_a| over the run, relative to the shortest
         // |d|.
         let spread_limit = max_spread * max_spread;
-        let a = first.dir;
-        let first_bits = [
-            first.origin[0],
-            first.origin[1],
-            first.origin[2],
-            first.tmin,
-            first.tmax,
-        ]
-        .map(f32::to_bits);
         let mut shape = PacketShape { origin, ..none };
         // The ranges of |d_a| of the groups before the current one, and of
         // the current one.
@@ -442,32 +489,31 @@ impl Tracer<'_> {
         };
         let mut shortest = f32::INFINITY;
         let mut n = 0;
-        for r in rays.iter().take(PACKET_RAYS) {
-            // The same origin and bounds bit for bit, and the same signs of
-            // the direction (the same octant), in one test.
-            let bits = [r.origin[0], r.origin[1], r.origin[2], r.tmin, r.tmax].map(f32::to_bits);
-            let differ = (bits[0] ^ first_bits[0])
-                | (bits[1] ^ first_bits[1])
-                | (bits[2] ^ first_bits[2])
-                | (bits[3] ^ first_bits[3])
-                | (bits[4] ^ first_bits[4])
-                | ((r.dir[0].to_bits() ^ a[0].to_bits())
-                    | (r.dir[1].to_bits() ^ a[1].to_bits())
-                    | (r.dir[2].to_bits() ^ a[2].to_bits()))
-                    >> 31;
-            let d = Vec3A::from_array(r.dir);
-            let m = d.abs();
-            let d2 = d.length_squared();
-            // Components treated as zero (or nearly) by the set-up, and NaNs
-            // and infinities, keep a ray out of packets.
-            let regular = m.min_element() > m.max_element() * 1e-6 && d2 < f32::INFINITY;
-            if differ != 0 || r.level != first.level || !regular {
-                break;
-            }
-            group = (group.0.min(m), group.1.max(m));
-            shortest = shortest.min(d2);
-            n += 1;
-            if n % GROUP_RAYS == 0 {
+        let limit = rays.len().min(PACKET_RAYS);
+        #[cfg(target_arch = "x86_64")]
+        let vectors = crate::simd::available();
+        #[cfg(not(target_arch = "x86_64"))]
+        let vectors = false;
+        while n < limit {
+            // Eight rays at a time in vectors where the processor can, else
+            // one: the rays from `n` on that may join, a prefix.
+            let step = if vectors && n + 8 <= limit { 8 } else { 1 };
+            #[cfg(target_arch = "x86_64")]
+            let scanned = if step == 8 {
+                let eight: &[Ray; 8] = rays[n..n + 8].try_into().expect("eight rays");
+                // SAFETY: `simd::available` found AVX2.
+                unsafe { crate::simd::scan_for_packet(eight, first) }
+            } else {
+                scan_ray(&rays[n], first)
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let scanned = scan_ray(&rays[n], first);
+            group = (group.0.min(scanned.lo), group.1.max(scanned.hi));
+            shortest = shortest.min(scanned.shortest);
+            n += scanned.len;
+            // Steps of 8 start at multiples of 8, so a group ends at the end
+            // of a step that took all its rays.
+            if scanned.len > 0 && n % GROUP_RAYS == 0 {
                 // The spread, checked a group at a time: a group that makes
                 // it too wide ends the packet before it.
                 let (lo, hi) = (before.0.min(group.0), before.1.max(group.1));
@@ -479,6 +525,9 @@ impl Tracer<'_> {
                 shape.ranges[n / GROUP_RAYS - 1] = group;
                 before = (lo, hi);
                 group = (Vec3A::INFINITY, Vec3A::ZERO);
+            }
+            if scanned.len < step {
+                break;
             }
         }
         if n % GROUP_RAYS != 0 {

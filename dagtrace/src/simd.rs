@@ -37,6 +37,7 @@ use std::arch::x86_64::*;
 use dagfmt::batch::{Hit, Ray};
 use glam::{BVec3A, Vec3A};
 
+use crate::packet::ScannedRays;
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
 use crate::tracer::{
     Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
@@ -402,6 +403,133 @@ fn refill(
             }
         }
     }
+}
+
+/// `packet::scan_ray` of eight rays at once: how many of `rays`, from the
+/// first, may join the packet that `first` starts, with the ranges of their
+/// `|d_a|` and their smallest `|d|²`, computed with the same `f32` operations
+/// (so the same packets).
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn scan_for_packet(rays: &[Ray; 8], first: &Ray) -> ScannedRays {
+    // The fields are gathered from the eight rays, 4-byte words apart.
+    const STRIDE: i32 = (std::mem::size_of::<Ray>() / 4) as i32;
+    const _: () = assert!(std::mem::size_of::<Ray>().is_multiple_of(4));
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let start = _mm256_mullo_epi32(lane, _mm256_set1_epi32(STRIDE));
+    let base = rays.as_ptr().cast::<i32>();
+    let word = |offset: usize| {
+        // SAFETY: lane k reads the 4-byte field at `offset` of `rays[k]`
+        // (the offset of an `f32` field): inside the array.
+        unsafe { gather_words(base, start, offset) }
+    };
+    let origin = std::mem::offset_of!(Ray, origin);
+    let dir = std::mem::offset_of!(Ray, dir);
+    let start_bits = [
+        word(origin),
+        word(origin + 4),
+        word(origin + 8),
+        word(std::mem::offset_of!(Ray, tmin)),
+        word(std::mem::offset_of!(Ray, tmax)),
+    ];
+    let first_start = [
+        first.origin[0],
+        first.origin[1],
+        first.origin[2],
+        first.tmin,
+        first.tmax,
+    ];
+    let d_bits = [word(dir), word(dir + 4), word(dir + 8)];
+    let splat = |v: f32| _mm256_set1_epi32(v.to_bits() as i32);
+    // The same origin and bounds bit for bit, and the same signs of the
+    // direction.
+    let mut differ = _mm256_setzero_si256();
+    for (b, f) in start_bits.iter().zip(first_start) {
+        differ = _mm256_or_si256(differ, _mm256_xor_si256(*b, splat(f)));
+    }
+    let mut signs = _mm256_setzero_si256();
+    for (b, f) in d_bits.iter().zip(first.dir) {
+        signs = _mm256_or_si256(signs, _mm256_xor_si256(*b, splat(f)));
+    }
+    differ = _mm256_or_si256(differ, _mm256_srli_epi32::<31>(signs));
+    let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(differ, _mm256_setzero_si256()));
+    let d = d_bits.map(|b| _mm256_castsi256_ps(b));
+    let m = d.map(|d| _mm256_andnot_ps(_mm256_set1_ps(-0.0), d));
+    // `length_squared`: (x² + y²) + z².
+    let d2 = _mm256_add_ps(
+        _mm256_add_ps(_mm256_mul_ps(d[0], d[0]), _mm256_mul_ps(d[1], d[1])),
+        _mm256_mul_ps(d[2], d[2]),
+    );
+    // With finite components (an infinite or NaN one fails the `d2` test),
+    // the smallest and largest component in any order.
+    let smallest = _mm256_min_ps(m[0], _mm256_min_ps(m[1], m[2]));
+    let largest = _mm256_max_ps(m[0], _mm256_max_ps(m[1], m[2]));
+    let regular = _mm256_and_ps(
+        _mm256_cmp_ps::<_CMP_GT_OQ>(smallest, _mm256_mul_ps(largest, _mm256_set1_ps(1e-6))),
+        _mm256_cmp_ps::<_CMP_LT_OQ>(d2, _mm256_set1_ps(f32::INFINITY)),
+    );
+    let mut level = 0u32;
+    for (k, r) in rays.iter().enumerate() {
+        level |= u32::from(r.level == first.level) << k;
+    }
+    let joins = _mm256_movemask_ps(_mm256_and_ps(same, regular)) as u32 & level;
+    let len = (!joins).trailing_zeros();
+    if len == 0 {
+        return ScannedRays::NONE;
+    }
+    // Over the rays that join: ranges and the smallest |d|², the others
+    // replaced by the neutral values.
+    let keep = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(len as i32), lane));
+    let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
+    ScannedRays {
+        len: len as usize,
+        lo: Vec3A::new(
+            fold_min(or_else(m[0], f32::INFINITY)),
+            fold_min(or_else(m[1], f32::INFINITY)),
+            fold_min(or_else(m[2], f32::INFINITY)),
+        ),
+        hi: Vec3A::new(
+            fold_max(or_else(m[0], 0.0)),
+            fold_max(or_else(m[1], 0.0)),
+            fold_max(or_else(m[2], 0.0)),
+        ),
+        shortest: fold_min(or_else(d2, f32::INFINITY)),
+    }
+}
+
+/// The 32-bit words at byte `offset` (a multiple of 4) past the 32-bit
+/// word offsets `start` from `base`.
+///
+/// # Safety
+///
+/// The processor must have AVX2, and every word read must be readable.
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn gather_words(base: *const i32, start: __m256i, offset: usize) -> __m256i {
+    let index = _mm256_add_epi32(start, _mm256_set1_epi32((offset / 4) as i32));
+    // SAFETY: the caller's.
+    unsafe { _mm256_i32gather_epi32::<4>(base, index) }
+}
+
+/// The smallest of the eight lanes (none NaN).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn fold_min(v: __m256) -> f32 {
+    let v = _mm_min_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    let v = _mm_min_ps(v, _mm_movehl_ps(v, v));
+    _mm_cvtss_f32(_mm_min_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
+}
+
+/// The largest of the eight lanes (none NaN).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn fold_max(v: __m256) -> f32 {
+    let v = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    let v = _mm_max_ps(v, _mm_movehl_ps(v, v));
+    _mm_cvtss_f32(_mm_max_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
 }
 
 /// [`Tracer::setup`] of four rays at once, in `f64` vectors with the very
@@ -954,6 +1082,79 @@ mod tests {
             7 => usual * 1e6,
             _ => usual,
         }
+    }
+
+    /// `scan_for_packet` against `packet::scan_ray` ray by ray, on runs of
+    /// eight rays that mostly share their start, with the odd field changed.
+    #[test]
+    fn vector_packet_scan_is_the_scan_of_each_ray() {
+        if !available() {
+            eprintln!("skipped: this processor has no AVX2");
+            return;
+        }
+        let mut rng = Rng(0x5ca7);
+        let mut lengths = [0usize; 9];
+        for _ in 0..40_000 {
+            let first = Ray {
+                origin: [0, 1, 2].map(|_| rng.range(-3.0, 3.0)),
+                dir: [0, 1, 2].map(|_| rng.range(-1.0, 1.0)),
+                tmin: rng.range(0.0, 1.0),
+                tmax: if rng.next().is_multiple_of(2) {
+                    f32::INFINITY
+                } else {
+                    10.0
+                },
+                level: None,
+            };
+            let rare = 8 + rng.next() % 64;
+            let rays: [Ray; 8] = std::array::from_fn(|_| {
+                let mut r = first;
+                r.dir = first.dir.map(|d| d + rng.range(-0.05, 0.05));
+                match rng.next() % rare {
+                    0 => r.origin[(rng.next() % 3) as usize] += 1e-6,
+                    1 => r.tmin = special(&mut rng, r.tmin),
+                    2 => r.tmax = special(&mut rng, r.tmax),
+                    3 => r.level = Some((rng.next() % 4) as u8),
+                    4 | 5 => {
+                        let a = (rng.next() % 3) as usize;
+                        r.dir[a] = special(&mut rng, r.dir[a]);
+                    }
+                    6 => {
+                        let a = (rng.next() % 3) as usize;
+                        r.dir[a] = -r.dir[a];
+                    }
+                    _ => {}
+                }
+                r
+            });
+            // SAFETY: AVX2 was found above.
+            let vector = unsafe { scan_for_packet(&rays, &rays[0]) };
+            let mut scalar = ScannedRays::NONE;
+            for r in &rays {
+                let one = crate::packet::scan_ray(r, &rays[0]);
+                if one.len == 0 {
+                    break;
+                }
+                scalar = ScannedRays {
+                    len: scalar.len + 1,
+                    lo: scalar.lo.min(one.lo),
+                    hi: scalar.hi.max(one.hi),
+                    shortest: scalar.shortest.min(one.shortest),
+                };
+            }
+            let bits = |s: &ScannedRays| {
+                (
+                    s.len,
+                    s.lo.to_array().map(f32::to_bits),
+                    s.hi.to_array().map(f32::to_bits),
+                    s.shortest.to_bits(),
+                )
+            };
+            assert_eq!(bits(&vector), bits(&scalar), "{rays:?}");
+            lengths[vector.len] += 1;
+        }
+        // Every length occurs, all eight joining most often.
+        assert!(lengths.iter().all(|&n| n > 100), "{lengths:?}");
     }
 
     #[test]

@@ -396,6 +396,25 @@ pub(crate) fn scan_ray(r: &Ray, first: &Ray) -> ScannedRays {
     }
 }
 
+/// Whether a packet may start at `rays[0]`: the test that most runs of rays
+/// that are not packets fail, cheap enough to run before
+/// [`Tracer::packet_shape`] at every ray of a batch — the ray
+/// [`MIN_PACKET_RAYS`] on starts like the first (same origin, bounds and
+/// level).
+#[inline(always)]
+pub(crate) fn may_start_packet(rays: &[Ray]) -> bool {
+    let (Some(first), Some(last)) = (rays.first(), rays.get(MIN_PACKET_RAYS - 1)) else {
+        return false;
+    };
+    let same = |x: f32, y: f32| x.to_bits() == y.to_bits();
+    same(last.origin[0], first.origin[0])
+        && same(last.origin[1], first.origin[1])
+        && same(last.origin[2], first.origin[2])
+        && same(last.tmin, first.tmin)
+        && same(last.tmax, first.tmax)
+        && last.level == first.level
+}
+
 /// The resumable depth-first beam walk.
 struct BeamWalk {
     frames: [BeamFrame; LEVEL_SLOTS],
@@ -433,22 +452,10 @@ impl Tracer<'_> {
         if self.beam_level() == 0 {
             return none;
         }
-        let Some(first) = rays.first() else {
-            return none;
-        };
-        let same = |x: f32, y: f32| x.to_bits() == y.to_bits();
-        let same_start = |r: &Ray| {
-            same(r.origin[0], first.origin[0])
-                && same(r.origin[1], first.origin[1])
-                && same(r.origin[2], first.origin[2])
-                && same(r.tmin, first.tmin)
-                && same(r.tmax, first.tmax)
-                && r.level == first.level
-        };
-        // Most batches that are not made of packets fail here, at once.
-        if rays.len() < MIN_PACKET_RAYS || !same_start(&rays[MIN_PACKET_RAYS - 1]) {
+        if !may_start_packet(rays) {
             return none;
         }
+        let first = &rays[0];
         // Rays of a coarser level of detail than the beam's cells, and rays
         // of an impossible level (an error, reported ray by ray), go alone.
         if first
@@ -828,14 +835,17 @@ impl Tracer<'_> {
                 let Some((cell_pos, cell_level)) = found else {
                     continue;
                 };
+                // The path to the cell matters only for its attribute index.
                 let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
-                stack[..path.len()].copy_from_slice(path);
-                for (k, f) in frames[..=top].iter().enumerate() {
-                    stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = Frame {
-                        word: f.word,
-                        mask: f.mask,
-                        ..Frame::default()
-                    };
+                if self.index_kind() {
+                    stack[..path.len()].copy_from_slice(path);
+                    for (k, f) in frames[..=top].iter().enumerate() {
+                        stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = Frame {
+                            word: f.word,
+                            mask: f.mask,
+                            ..Frame::default()
+                        };
+                    }
                 }
                 hits[r] = self
                     .finish(

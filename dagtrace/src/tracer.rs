@@ -604,6 +604,10 @@ impl<'a> Tracer<'a> {
         let mut i = 0;
         let mut run = 0;
         while i < count {
+            if !crate::packet::may_start_packet(&rays[i..count]) {
+                i += 1;
+                continue;
+            }
             let shape = self.packet_shape(&rays[i..count]);
             let n = shape.len;
             if n == 0 {
@@ -799,7 +803,8 @@ impl<'a> Tracer<'a> {
             .map_err(|f| self.fault_error(f))
     }
 
-    fn index_kind(&self) -> bool {
+    /// Whether hits carry an attribute index (which needs the path to the cell).
+    pub(crate) fn index_kind(&self) -> bool {
         self.compute_index && self.attribute_kind == AttributeKind::VoxelCount
     }
 
@@ -1234,11 +1239,13 @@ impl<'a> Tracer<'a> {
             let sub = usize::from(FIRST[neg][usize::from(remaining)]);
             remaining &= !(1 << sub);
             let m = (sub ^ neg) & 7;
-            let sub_pos = pos + CHILD_STEPS[m] * 2.0;
+            let step = CHILD_STEPS[m];
+            let sub_pos = pos + step * 2.0;
             if p.level < self.depth {
                 return Some((sub_pos, self.depth - 1));
             }
-            let upper = BVec3A::new(m & 1 != 0, m & 2 != 0, m & 4 != 0);
+            // The axes on which the sub-brick is the upper half.
+            let upper = step.cmpgt(Vec3A::ZERO);
             let s_lo = Vec3A::select(upper, t2, t0);
             let s_mid = Vec3A::select(upper, t3, t1);
             let s_hi = Vec3A::select(upper, t4, t2);

@@ -252,27 +252,27 @@ pub(crate) struct PacketShape {
 /// The rays of a packet in the traversal's frame, four to a vector, for the
 /// visits of [`Tracer::visit_subtree_node`].
 #[derive(Clone, Copy, Debug, Default)]
-struct PacketLanes {
+pub(crate) struct PacketLanes {
     /// `1 / direction` per axis.
-    inv: [[Vec4; PACKET_RAYS / 4]; 3],
+    pub(crate) inv: [[Vec4; PACKET_RAYS / 4]; 3],
     /// The rays' clipped `tmin` and `tmax`.
-    tmin: [Vec4; PACKET_RAYS / 4],
-    tmax: [Vec4; PACKET_RAYS / 4],
+    pub(crate) tmin: [Vec4; PACKET_RAYS / 4],
+    pub(crate) tmax: [Vec4; PACKET_RAYS / 4],
 }
 
 /// The comparisons that make a ray's chain of children in a node (see
 /// `tracer::chain`), one bit per ray of a packet.
-#[derive(Clone, Copy, Debug, Default)]
-struct ChainTests {
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(crate) struct ChainTests {
     /// The ray's segment meets the node: `t_enter <= t_exit`.
-    inside: u64,
+    pub(crate) inside: u64,
     /// Per (mirrored) axis: the mid-plane is at or before the entry
     /// (`t_mid <= t_enter`), so the ray starts in the upper half.
-    first: [u64; 3],
+    pub(crate) first: [u64; 3],
     /// Per axis: `t_mid <= t_exit`.
-    before_exit: [u64; 3],
+    pub(crate) before_exit: [u64; 3],
     /// `t_mid.x < t_mid.y`, `t_mid.x < t_mid.z`, `t_mid.y < t_mid.z`.
-    order: [u64; 3],
+    pub(crate) order: [u64; 3],
 }
 
 impl ChainTests {
@@ -334,6 +334,41 @@ impl ChainTests {
         }
         rays
     }
+}
+
+/// The chain tests of the rays `rays` of a packet in a node whose lower,
+/// middle and upper planes are at offsets `planes` from the packet's origin
+/// (the same operations as `resume`, so the same roundings), four rays at a
+/// time. Rays of the groups of four touched that are not in `rays` get
+/// tests too, to be ignored (`inside` only counts `rays`' own).
+#[inline(always)]
+pub(crate) fn chain_tests(planes: [[f32; 3]; 3], lanes: &PacketLanes, rays: u64) -> ChainTests {
+    let [d_lo, d_mid, d_hi] = planes.map(|p| p.map(Vec4::splat));
+    let mut tests = ChainTests::default();
+    let mut groups = rays;
+    while groups != 0 {
+        let g = groups.trailing_zeros() as usize / 4;
+        groups &= !(0xf << (4 * g));
+        let k = g & (PACKET_RAYS / 4 - 1);
+        let inv = [lanes.inv[0][k], lanes.inv[1][k], lanes.inv[2][k]];
+        let t_lo: [Vec4; 3] = std::array::from_fn(|a| d_lo[a] * inv[a]);
+        let t_mid: [Vec4; 3] = std::array::from_fn(|a| d_mid[a] * inv[a]);
+        let t_hi: [Vec4; 3] = std::array::from_fn(|a| d_hi[a] * inv[a]);
+        let enter = t_lo[0].max(t_lo[1]).max(t_lo[2]).max(lanes.tmin[k]);
+        let exit = t_hi[0].min(t_hi[1]).min(t_hi[2]).min(lanes.tmax[k]);
+        let shift = 4 * g;
+        let bits = |m: glam::BVec4A| u64::from(m.bitmask()) << shift;
+        tests.inside |= bits(enter.cmple(exit));
+        for (a, t) in t_mid.iter().enumerate() {
+            tests.first[a] |= bits(t.cmple(enter));
+            tests.before_exit[a] |= bits(t.cmple(exit));
+        }
+        tests.order[0] |= bits(t_mid[0].cmplt(t_mid[1]));
+        tests.order[1] |= bits(t_mid[0].cmplt(t_mid[2]));
+        tests.order[2] |= bits(t_mid[1].cmplt(t_mid[2]));
+    }
+    tests.inside &= rays;
+    tests
 }
 
 /// Levels of a beam cell's subtree above its bricks (the beam level is 5
@@ -902,37 +937,21 @@ impl Tracer<'_> {
         let mask = header as u8;
         // The plane offsets are common to the packet (one origin); the same
         // operations as `resume`, so the same roundings.
-        let d_lo = (pos - origin).to_array().map(Vec4::splat);
-        let d_mid = (pos + Vec3A::splat(size * 0.5) - origin)
-            .to_array()
-            .map(Vec4::splat);
-        let d_hi = (pos + Vec3A::splat(size) - origin)
-            .to_array()
-            .map(Vec4::splat);
-        let mut tests = ChainTests::default();
-        let mut groups = rays;
-        while groups != 0 {
-            let g = groups.trailing_zeros() as usize / 4;
-            groups &= !(0xf << (4 * g));
-            let k = g & (PACKET_RAYS / 4 - 1);
-            let inv = [lanes.inv[0][k], lanes.inv[1][k], lanes.inv[2][k]];
-            let t_lo: [Vec4; 3] = std::array::from_fn(|a| d_lo[a] * inv[a]);
-            let t_mid: [Vec4; 3] = std::array::from_fn(|a| d_mid[a] * inv[a]);
-            let t_hi: [Vec4; 3] = std::array::from_fn(|a| d_hi[a] * inv[a]);
-            let enter = t_lo[0].max(t_lo[1]).max(t_lo[2]).max(lanes.tmin[k]);
-            let exit = t_hi[0].min(t_hi[1]).min(t_hi[2]).min(lanes.tmax[k]);
-            let shift = 4 * g;
-            let bits = |m: glam::BVec4A| u64::from(m.bitmask()) << shift;
-            tests.inside |= bits(enter.cmple(exit));
-            for (a, t) in t_mid.iter().enumerate() {
-                tests.first[a] |= bits(t.cmple(enter));
-                tests.before_exit[a] |= bits(t.cmple(exit));
-            }
-            tests.order[0] |= bits(t_mid[0].cmplt(t_mid[1]));
-            tests.order[1] |= bits(t_mid[0].cmplt(t_mid[2]));
-            tests.order[2] |= bits(t_mid[1].cmplt(t_mid[2]));
-        }
-        tests.inside &= rays;
+        let planes = [
+            pos - origin,
+            pos + Vec3A::splat(size * 0.5) - origin,
+            pos + Vec3A::splat(size) - origin,
+        ]
+        .map(|p| p.to_array());
+        #[cfg(target_arch = "x86_64")]
+        let tests = if crate::simd::available() {
+            // SAFETY: `simd::available` found AVX2.
+            unsafe { crate::simd::chain_tests(planes, lanes, rays) }
+        } else {
+            chain_tests(planes, lanes, rays)
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let tests = chain_tests(planes, lanes, rays);
         // Only the entries of the children with rays are ever read.
         frame.word = word;
         frame.mask = mask;

@@ -37,7 +37,7 @@ use std::arch::x86_64::*;
 use dagfmt::batch::{Hit, Ray};
 use glam::{BVec3A, Vec3A};
 
-use crate::packet::ScannedRays;
+use crate::packet::{ChainTests, PacketLanes, ScannedRays};
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
 use crate::tracer::{
     Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
@@ -530,6 +530,74 @@ fn fold_max(v: __m256) -> f32 {
     let v = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
     let v = _mm_max_ps(v, _mm_movehl_ps(v, v));
     _mm_cvtss_f32(_mm_max_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
+}
+
+/// `packet::chain_tests` eight rays at a time, with the same `f32`
+/// operations (so the same tests bit for bit).
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn chain_tests(
+    planes: [[f32; 3]; 3],
+    lanes: &PacketLanes,
+    rays: u64,
+) -> ChainTests {
+    let splat = |p: [f32; 3]| {
+        [
+            _mm256_set1_ps(p[0]),
+            _mm256_set1_ps(p[1]),
+            _mm256_set1_ps(p[2]),
+        ]
+    };
+    let [d_lo, d_mid, d_hi] = [splat(planes[0]), splat(planes[1]), splat(planes[2])];
+    let mut tests = ChainTests::default();
+    let mut groups = rays;
+    while groups != 0 {
+        let g = (groups.trailing_zeros() / 8) as usize & 7;
+        groups &= !(0xff << (8 * g));
+        // Eight rays: two of the packet's four-ray vectors, adjacent in memory.
+        macro_rules! load {
+            ($v:expr) => {{
+                let v: &[glam::Vec4; 16] = &$v;
+                // SAFETY: floats 8g..8g + 8 of the 64 in `v` (g < 8).
+                unsafe { _mm256_loadu_ps(v.as_ptr().cast::<f32>().add(8 * g)) }
+            }};
+        }
+        let inv = [
+            load!(lanes.inv[0]),
+            load!(lanes.inv[1]),
+            load!(lanes.inv[2]),
+        ];
+        let t_lo: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_lo[a], inv[a]));
+        let t_mid: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_mid[a], inv[a]));
+        let t_hi: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_hi[a], inv[a]));
+        let enter = _mm256_max_ps(
+            _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
+            load!(lanes.tmin),
+        );
+        let exit = _mm256_min_ps(
+            _mm256_min_ps(_mm256_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
+            load!(lanes.tmax),
+        );
+        let shift = 8 * g;
+        macro_rules! bits {
+            ($m:expr) => {
+                u64::from(_mm256_movemask_ps($m) as u8) << shift
+            };
+        }
+        tests.inside |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(enter, exit));
+        for a in 0..3 {
+            tests.first[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t_mid[a], enter));
+            tests.before_exit[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t_mid[a], exit));
+        }
+        tests.order[0] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[1]));
+        tests.order[1] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[2]));
+        tests.order[2] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[1], t_mid[2]));
+    }
+    tests.inside &= rays;
+    tests
 }
 
 /// [`Tracer::setup`] of four rays at once, in `f64` vectors with the very
@@ -1155,6 +1223,54 @@ mod tests {
         }
         // Every length occurs, all eight joining most often.
         assert!(lengths.iter().all(|&n| n > 100), "{lengths:?}");
+    }
+
+    /// `chain_tests` against `packet::chain_tests` (four rays to a vector)
+    /// on random packets, planes and ray sets, ties included.
+    #[test]
+    fn vector_chain_tests_are_the_chain_tests_of_four_ray_vectors() {
+        if !available() {
+            eprintln!("skipped: this processor has no AVX2");
+            return;
+        }
+        let mut rng = Rng(0xc4a1);
+        let mut inside = 0u32;
+        for _ in 0..20_000 {
+            let mut lanes = PacketLanes::default();
+            for k in 0..16 {
+                for a in 0..3 {
+                    lanes.inv[a][k] = glam::Vec4::from_array(std::array::from_fn(|_| {
+                        // Equal inverses now and then: ties between the axes.
+                        if rng.next().is_multiple_of(8) {
+                            1.0
+                        } else {
+                            rng.range(0.01, 4.0)
+                        }
+                    }));
+                }
+                lanes.tmin[k] =
+                    glam::Vec4::from_array(std::array::from_fn(|_| rng.range(0.0, 2.0)));
+                lanes.tmax[k] =
+                    glam::Vec4::from_array(std::array::from_fn(|_| rng.range(1.0, 40.0)));
+            }
+            let lo: [f32; 3] = std::array::from_fn(|_| rng.range(-4.0, 12.0).floor());
+            let size = [1.0, 2.0, 4.0, 8.0][(rng.next() % 4) as usize];
+            let planes = [lo, lo.map(|v| v + size * 0.5), lo.map(|v| v + size)];
+            let rays = rng.next() & rng.next();
+            // SAFETY: AVX2 was found above.
+            let vector = unsafe { chain_tests(planes, &lanes, rays) };
+            let scalar = crate::packet::chain_tests(planes, &lanes, rays);
+            // Only the rays asked about count (the vectors cover more).
+            let only = |t: ChainTests| ChainTests {
+                inside: t.inside,
+                first: t.first.map(|m| m & rays),
+                before_exit: t.before_exit.map(|m| m & rays),
+                order: t.order.map(|m| m & rays),
+            };
+            assert_eq!(only(vector), only(scalar), "{planes:?} {rays:x}");
+            inside += vector.inside.count_ones();
+        }
+        assert!(inside > 10_000, "{inside} rays inside");
     }
 
     #[test]

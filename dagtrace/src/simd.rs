@@ -588,9 +588,9 @@ pub(crate) unsafe fn chain_tests(
             };
         }
         tests.inside |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(enter, exit));
-        for a in 0..3 {
-            tests.first[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t_mid[a], enter));
-            tests.before_exit[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t_mid[a], exit));
+        for (a, &t) in t_mid.iter().enumerate() {
+            tests.first[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t, enter));
+            tests.before_exit[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t, exit));
         }
         tests.order[0] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[1]));
         tests.order[1] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[2]));

@@ -611,7 +611,7 @@ pub(crate) unsafe fn chain_tests(
 ///
 /// The processor must have AVX2.
 #[target_feature(enable = "avx2")]
-unsafe fn setup4(tracer: &Tracer<'_>, rays: &[Ray; 4], out: &mut [Prepared; 4]) -> u32 {
+pub(crate) unsafe fn setup4(tracer: &Tracer<'_>, rays: &[Ray; 4], out: &mut [Prepared; 4]) -> u32 {
     let f = |get: &dyn Fn(&Ray) -> f32| {
         _mm256_setr_pd(
             f64::from(get(&rays[0])),

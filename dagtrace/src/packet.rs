@@ -61,6 +61,7 @@ use glam::{Vec3A, Vec4};
 use crate::tables::FIRST;
 use crate::tracer::{
     CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, prefetch,
+    prefetch_address,
 };
 use dagfmt::batch::{Hit, Ray};
 
@@ -532,6 +533,17 @@ impl Tracer<'_> {
         let mut shortest = f32::INFINITY;
         let mut n = 0;
         let limit = rays.len().min(PACKET_RAYS);
+        // The rays of the next packet are read soon, and a batch is mostly
+        // too large for the caches: start their reads now (one packet ahead
+        // hides the memory latency; the hardware prefetchers do not run that
+        // far ahead of this stream).
+        if let Some(next) = rays.get(PACKET_RAYS..(2 * PACKET_RAYS).min(rays.len())) {
+            let bytes = std::mem::size_of_val(next);
+            let start = next.as_ptr().cast::<u8>();
+            for at in (0..bytes).step_by(64) {
+                prefetch_address(start.wrapping_add(at));
+            }
+        }
         #[cfg(target_arch = "x86_64")]
         let vectors = crate::simd::available();
         #[cfg(not(target_arch = "x86_64"))]

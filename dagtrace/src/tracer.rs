@@ -1418,6 +1418,21 @@ pub(crate) fn prefetch(bytes: &[u8], at: usize) {
     let _ = (bytes, at);
 }
 
+/// Hints the processor to load the cache line holding `at`, which need not
+/// be a valid address.
+#[inline(always)]
+pub(crate) fn prefetch_address(at: *const u8) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: `prefetch` is only a hint: it reads nothing the program sees
+    // and never faults, whatever the address; `sse` is part of the x86-64
+    // baseline.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(at.cast())
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = at;
+}
+
 /// Bit `c` set when byte `c` (sub-brick `c`) of a leaf mask is non-zero.
 #[inline(always)]
 fn sub_brick_mask(bits: u64) -> u8 {

@@ -1004,9 +1004,9 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         let lanes = |v: __m256i| _mm256_movemask_ps(_mm256_castsi256_ps(v)) as u32;
         choose_bits = lanes(choose);
         slow_bits = lanes(_mm256_and_si256(cut, choose));
-        if slow_bits != 0 {
-            sti!(rank_out, rank);
-        }
+        // Stored whether or not a lane needs it: cheaper than a branch that
+        // mispredicts.
+        sti!(rank_out, rank);
         done_bits = lanes(_mm256_or_si256(at_stop, at_top));
     }
 

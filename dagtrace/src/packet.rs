@@ -250,15 +250,36 @@ pub(crate) struct PacketShape {
     origin: [f64; 3],
 }
 
-/// The rays of a packet in the traversal's frame, four to a vector, for the
+/// The rays of a packet in the traversal's frame, one array entry per ray
+/// (structure of arrays, loaded four or eight rays to a vector), for the
 /// visits of [`Tracer::visit_subtree_node`].
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(32))]
 pub(crate) struct PacketLanes {
     /// `1 / direction` per axis.
-    pub(crate) inv: [[Vec4; PACKET_RAYS / 4]; 3],
+    pub(crate) inv: [[f32; PACKET_RAYS]; 3],
     /// The rays' clipped `tmin` and `tmax`.
-    pub(crate) tmin: [Vec4; PACKET_RAYS / 4],
-    pub(crate) tmax: [Vec4; PACKET_RAYS / 4],
+    pub(crate) tmin: [f32; PACKET_RAYS],
+    pub(crate) tmax: [f32; PACKET_RAYS],
+}
+
+impl Default for PacketLanes {
+    fn default() -> Self {
+        PacketLanes {
+            inv: [[0.0; PACKET_RAYS]; 3],
+            tmin: [0.0; PACKET_RAYS],
+            tmax: [0.0; PACKET_RAYS],
+        }
+    }
+}
+
+impl PacketLanes {
+    /// Rays `4k..4k + 4` of `v` as a vector.
+    #[inline(always)]
+    fn four(v: &[f32; PACKET_RAYS], k: usize) -> Vec4 {
+        let k = k & (PACKET_RAYS / 4 - 1);
+        Vec4::from_slice(&v[4 * k..4 * k + 4])
+    }
 }
 
 /// The comparisons that make a ray's chain of children in a node (see
@@ -341,12 +362,18 @@ pub(crate) fn chain_tests(planes: [[f32; 3]; 3], lanes: &PacketLanes, rays: u64)
         let g = groups.trailing_zeros() as usize / 4;
         groups &= !(0xf << (4 * g));
         let k = g & (PACKET_RAYS / 4 - 1);
-        let inv = [lanes.inv[0][k], lanes.inv[1][k], lanes.inv[2][k]];
+        let inv = lanes.inv.each_ref().map(|v| PacketLanes::four(v, k));
         let t_lo: [Vec4; 3] = std::array::from_fn(|a| d_lo[a] * inv[a]);
         let t_mid: [Vec4; 3] = std::array::from_fn(|a| d_mid[a] * inv[a]);
         let t_hi: [Vec4; 3] = std::array::from_fn(|a| d_hi[a] * inv[a]);
-        let enter = t_lo[0].max(t_lo[1]).max(t_lo[2]).max(lanes.tmin[k]);
-        let exit = t_hi[0].min(t_hi[1]).min(t_hi[2]).min(lanes.tmax[k]);
+        let enter = t_lo[0]
+            .max(t_lo[1])
+            .max(t_lo[2])
+            .max(PacketLanes::four(&lanes.tmin, k));
+        let exit = t_hi[0]
+            .min(t_hi[1])
+            .min(t_hi[2])
+            .min(PacketLanes::four(&lanes.tmax, k));
         let shift = 4 * g;
         let bits = |m: glam::BVec4A| u64::from(m.bitmask()) << shift;
         tests.inside |= bits(enter.cmple(exit));
@@ -718,12 +745,11 @@ impl Tracer<'_> {
             let i = set.trailing_zeros() as usize & (PACKET_RAYS - 1);
             set &= set - 1;
             let q = &walks[i].q;
-            let (k, lane) = (i / 4, i % 4);
             for a in 0..3 {
-                lanes.inv[a][k][lane] = q.inv_dir[a];
+                lanes.inv[a][i] = q.inv_dir[a];
             }
-            lanes.tmin[k][lane] = q.tmin;
-            lanes.tmax[k][lane] = q.tmax;
+            lanes.tmin[i] = q.tmin;
+            lanes.tmax[i] = q.tmax;
         }
         while alive != 0 && listed > 0 {
             for cell in &cells[..listed] {

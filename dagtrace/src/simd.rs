@@ -557,12 +557,12 @@ pub(crate) unsafe fn chain_tests(
     while groups != 0 {
         let g = (groups.trailing_zeros() / 8) as usize & 7;
         groups &= !(0xff << (8 * g));
-        // Eight rays: two of the packet's four-ray vectors, adjacent in memory.
+        // Rays 8g..8g + 8.
         macro_rules! load {
             ($v:expr) => {{
-                let v: &[glam::Vec4; 16] = &$v;
+                let v: &[f32; 64] = &$v;
                 // SAFETY: floats 8g..8g + 8 of the 64 in `v` (g < 8).
-                unsafe { _mm256_loadu_ps(v.as_ptr().cast::<f32>().add(8 * g)) }
+                unsafe { _mm256_loadu_ps(v.as_ptr().add(8 * g)) }
             }};
         }
         let inv = [
@@ -1237,21 +1237,17 @@ mod tests {
         let mut inside = 0u32;
         for _ in 0..20_000 {
             let mut lanes = PacketLanes::default();
-            for k in 0..16 {
+            for i in 0..64 {
                 for a in 0..3 {
-                    lanes.inv[a][k] = glam::Vec4::from_array(std::array::from_fn(|_| {
-                        // Equal inverses now and then: ties between the axes.
-                        if rng.next().is_multiple_of(8) {
-                            1.0
-                        } else {
-                            rng.range(0.01, 4.0)
-                        }
-                    }));
+                    // Equal inverses now and then: ties between the axes.
+                    lanes.inv[a][i] = if rng.next().is_multiple_of(8) {
+                        1.0
+                    } else {
+                        rng.range(0.01, 4.0)
+                    };
                 }
-                lanes.tmin[k] =
-                    glam::Vec4::from_array(std::array::from_fn(|_| rng.range(0.0, 2.0)));
-                lanes.tmax[k] =
-                    glam::Vec4::from_array(std::array::from_fn(|_| rng.range(1.0, 40.0)));
+                lanes.tmin[i] = rng.range(0.0, 2.0);
+                lanes.tmax[i] = rng.range(1.0, 40.0);
             }
             let lo: [f32; 3] = std::array::from_fn(|_| rng.range(-4.0, 12.0).floor());
             let size = [1.0, 2.0, 4.0, 8.0][(rng.next() % 4) as usize];

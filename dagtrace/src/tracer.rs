@@ -1178,13 +1178,12 @@ impl<'a> Tracer<'a> {
         let t_lo = (pos - p.origin) * p.inv_dir;
         let t_lo = Vec3A::select(p.moving, t_lo, Vec3A::NEG_INFINITY);
         let [x, y, z] = t_lo.to_array();
-        let (near, axis) = if x >= y && x >= z {
-            (x, 0)
-        } else if y >= z {
-            (y, 1)
-        } else {
-            (z, 2)
-        };
+        // The first axis of the largest, without branches: x if x >= y and
+        // x >= z, else y if y >= z, else z.
+        let (x_largest, y_next) = (x >= y && x >= z, y >= z);
+        let axis = usize::from(!x_largest) * (2 - usize::from(y_next));
+        let near = [x, y, z][axis];
+        let axis = axis as u8;
         let (t, face) = if near < p.tmin {
             (p.tmin, 0)
         } else {
@@ -1196,13 +1195,10 @@ impl<'a> Tracer<'a> {
             .to_array()
             .map(|v| v as u32);
         let last = (1u32 << level) - 1;
-        let cell = [0, 1, 2].map(|i| {
-            if p.neg >> i & 1 == 1 {
-                last - m[i]
-            } else {
-                m[i]
-            }
-        });
+        // Mirrored back on the axes of negative direction: `last - m`, which
+        // is `last ^ m` (m <= last), chosen without a branch (a coin toss
+        // per axis for the branch predictor).
+        let cell = [0, 1, 2].map(|i| m[i] ^ (last & 0u32.wrapping_sub((p.neg >> i & 1) as u32)));
         (Found { cell, leaf }, t, face)
     }
 

@@ -1198,6 +1198,10 @@ impl<'a> Tracer<'a> {
         // Mirrored back on the axes of negative direction: `last - m`, which
         // is `last ^ m` (m <= last), chosen without a branch (a coin toss
         // per axis for the branch predictor).
+        debug_assert!(
+            m.iter().all(|&v| v <= last),
+            "a cell outside the grid: {m:?}"
+        );
         let cell = [0, 1, 2].map(|i| m[i] ^ (last & 0u32.wrapping_sub((p.neg >> i & 1) as u32)));
         (Found { cell, leaf }, t, face)
     }

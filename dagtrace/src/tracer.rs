@@ -589,7 +589,7 @@ impl<'a> Tracer<'a> {
     /// several rays in flight, eight to an AVX2 vector where the processor
     /// has it, so that the memory latency of one ray's reads is spent
     /// advancing the others; and because, in DAGs small enough for the caches
-    /// ([`PACKET_MAX_DAG_BYTES`]), runs of up to 64 consecutive rays with the
+    /// (64 MiB, `PACKET_MAX_DAG_BYTES`), runs of up to 64 consecutive rays with the
     /// same origin, bounds and level and directions in one octant (primary
     /// rays, best in tiles: [`crate::camera::CameraFrame::rays_in_tiles`]) are
     /// traced as packets, sharing one walk of the coarse levels. Fails with

@@ -42,7 +42,8 @@
 //!    child order, in which every node is read once and each ray that reached
 //!    it computes its own chain of children (the children it passes through)
 //!    from the very same plane parameters as [`Tracer::trace`], four rays at a
-//!    time in SIMD, the chain coming out as one bit mask of rays per child
+//!    time in SIMD (eight with AVX2), the chains of all eight children coming
+//!    out, without branches, as one bit mask of rays per child
 //!    ([`ChainTests`]). Each ray thus meets the nodes of its own traversal, in
 //!    its own front-to-back order, and the first voxel it finds in a brick
 //!    (read from the leaf mask, as by [`Tracer::trace`]) is its answer; a ray
@@ -966,7 +967,7 @@ impl Tracer<'_> {
     /// The visit of a node of a cell's subtree by the rays `rays` of a
     /// packet: the rays that pass through each child, as each ray's own
     /// traversal would find them ([`Tracer::resume`]: the chain of children
-    /// from the same plane parameters), four rays at a time.
+    /// from the same plane parameters), four or eight rays at a time.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn visit_subtree_node(

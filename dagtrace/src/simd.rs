@@ -41,6 +41,7 @@ use crate::packet::{ChainTests, PacketLanes, ScannedRays};
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
 use crate::tracer::{
     Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
+    prefetch_address,
 };
 
 /// Rays to a vector.
@@ -573,14 +574,7 @@ pub(crate) unsafe fn chain_tests(
         let t_lo: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_lo[a], inv[a]));
         let t_mid: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_mid[a], inv[a]));
         let t_hi: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_hi[a], inv[a]));
-        let enter = _mm256_max_ps(
-            _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
-            load!(lanes.tmin),
-        );
-        let exit = _mm256_min_ps(
-            _mm256_min_ps(_mm256_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
-            load!(lanes.tmax),
-        );
+        let (enter, exit) = segment(t_lo, t_hi, load!(lanes.tmin), load!(lanes.tmax));
         let shift = 8 * g;
         macro_rules! bits {
             ($m:expr) => {
@@ -830,16 +824,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             plane(_mm256_add_ps(py, size), oy, iy),
             plane(_mm256_add_ps(pz, size), oz, iz),
         ];
-        // `max`/`min` of tracer.rs are `_mm256_max_ps`/`_mm256_min_ps` exactly
-        // (the second operand unless the first is strictly greater/less).
-        let enter = _mm256_max_ps(
-            _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
-            ldf!(g.tmin),
-        );
-        let exit = _mm256_min_ps(
-            _mm256_min_ps(_mm256_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
-            ldf!(g.tmax),
-        );
+        let (enter, exit) = segment(t_lo, t_hi, ldf!(g.tmin), ldf!(g.tmax));
         let nonempty = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_LE_OQ>(enter, exit));
         // The CHAIN key, as `chain` computes it.
         let le_enter = t_mid.map(|t| _mm256_cmp_ps::<_CMP_LE_OQ>(t, enter));
@@ -1023,7 +1008,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         };
         // A prefetch never faults: lanes without a child fetch some byte of
         // the file, and a wrong pointer just fetches a useless line.
-        prefetch_any(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
+        prefetch_address(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
     }
     let mut lanes = slow_bits & choose_bits;
     while lanes != 0 {
@@ -1045,11 +1030,23 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
     Ok(done_bits)
 }
 
-/// Prefetches the cache line at `at`, which need not be a valid address.
-#[inline(always)]
-fn prefetch_any(at: *const u8) {
-    // SAFETY: a prefetch is a hint that never faults, whatever the address.
-    unsafe { _mm_prefetch::<_MM_HINT_T0>(at.cast()) }
+/// The part of each lane's segment `[tmin, tmax]` inside a box whose lower and
+/// upper planes the lane crosses at `t_lo` and `t_hi`: its entry and exit, as
+/// the scalar traversal computes them (`max`/`min` of tracer.rs are
+/// `_mm256_max_ps`/`_mm256_min_ps` exactly: the second operand unless the
+/// first is strictly greater/less).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn segment(t_lo: [__m256; 3], t_hi: [__m256; 3], tmin: __m256, tmax: __m256) -> (__m256, __m256) {
+    let enter = _mm256_max_ps(
+        _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
+        tmin,
+    );
+    let exit = _mm256_min_ps(
+        _mm256_min_ps(_mm256_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
+        tmax,
+    );
+    (enter, exit)
 }
 
 /// The entries of a per-level table (`[i32; LEVEL_TABLE]` as three vectors)

@@ -700,21 +700,11 @@ impl Tracer<'_> {
         let mut alive = 0u64;
         // Rays set up four at a time in vectors where the processor can
         // (the same numbers as `packet_ray`, for usual rays).
-        #[cfg(target_arch = "x86_64")]
-        let vectors = crate::simd::available();
         let mut prepared = [Prepared::default(); 4];
         let mut usual = 0u32;
         for (i, ray) in rays.iter().enumerate() {
-            #[cfg(target_arch = "x86_64")]
-            if vectors && i % 4 == 0 {
-                usual = match rays.get(i..i + 4) {
-                    Some(four) => {
-                        let four: &[Ray; 4] = four.try_into().expect("four rays");
-                        // SAFETY: `simd::available` found AVX2.
-                        unsafe { crate::simd::setup4(self, four, &mut prepared) }
-                    }
-                    None => 0,
-                };
+            if i % 4 == 0 {
+                usual = self.set_up_four(&rays[i..], &mut prepared);
             }
             let set_up = if usual >> (i % 4) & 1 == 1 {
                 let p = &prepared[i % 4];
@@ -796,6 +786,23 @@ impl Tracer<'_> {
             missed &= missed - 1;
         }
         true
+    }
+
+    /// The first four of `rays` set up in `prepared` by `simd::setup4`, where
+    /// the processor has AVX2 and four rays are left: the mask of the usual
+    /// rays it set up (0 otherwise; the others go through
+    /// [`Tracer::packet_ray`]).
+    #[inline(always)]
+    fn set_up_four(&self, rays: &[Ray], prepared: &mut [Prepared; 4]) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(four) = rays.first_chunk::<4>()
+            && crate::simd::available()
+        {
+            // SAFETY: `simd::available` found AVX2.
+            return unsafe { crate::simd::setup4(self, four, prepared) };
+        }
+        let _ = (rays, prepared);
+        0
     }
 
     /// The set-up of a ray of a packet whose grid origin is `origin` (not

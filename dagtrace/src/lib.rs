@@ -25,6 +25,7 @@ pub mod camera;
 pub mod cli;
 #[cfg(feature = "gpu")]
 pub mod gpu;
+mod grid;
 mod packet;
 mod parallel;
 pub mod render;

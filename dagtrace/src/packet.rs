@@ -176,7 +176,7 @@ impl Beam {
     /// meet: [`Beam::meets`] for each of them, with the products of the
     /// planes they share computed once (the very same expressions, so the
     /// same answers).
-    #[inline]
+    #[inline(always)]
     fn children_met(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
         let half = size * 0.5;
         let mut near = [[0f64; 2]; 3];
@@ -496,7 +496,7 @@ impl Tracer<'_> {
     /// time) — with the ranges of `|d_a|` of its groups, for the beams. The
     /// length is 0 when fewer than [`MIN_PACKET_RAYS`] rays qualify. One pass
     /// over the rays: it runs at every packet of a batch.
-    #[inline(never)]
+    #[inline(always)]
     pub(crate) fn packet_shape(&self, rays: &[Ray]) -> PacketShape {
         let none = PacketShape {
             len: 0,
@@ -631,6 +631,27 @@ impl Tracer<'_> {
     /// by one.
     #[inline(never)]
     pub(crate) fn trace_packet(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if crate::simd::available() {
+            // SAFETY: checked.
+            return unsafe { self.trace_packet_avx2(rays, hits, shape) };
+        }
+        self.trace_packet_impl(rays, hits, shape)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
+    unsafe fn trace_packet_avx2(
+        &self,
+        rays: &[Ray],
+        hits: &mut [Hit],
+        shape: &PacketShape,
+    ) -> bool {
+        self.trace_packet_impl(rays, hits, shape)
+    }
+
+    #[inline(always)]
+    fn trace_packet_impl(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
         let beam_level = self.beam_level();
         let n = rays.len().min(hits.len()).min(PACKET_RAYS);
         if n == 0 || self.empty {
@@ -840,7 +861,7 @@ impl Tracer<'_> {
     /// bit cleared from `alive`. `path` holds the nodes above the cell.
     /// `Err` on a read out of range.
     #[allow(clippy::too_many_arguments)]
-    #[inline(never)]
+    #[inline(always)]
     fn walk_cell(
         &self,
         cell: &BeamCell,
@@ -1049,7 +1070,7 @@ impl Tracer<'_> {
     /// [`GROUP_RAYS`] consecutive rays (`groups[g]` for `rays[16g..16g + 16]`),
     /// or `None` when they have no finite extent (which
     /// [`Tracer::packet_shape`] rules out).
-    #[inline(never)]
+    #[inline(always)]
     fn beams(&self, first: &Ray, shape: &PacketShape) -> Option<(Beam, [Beam; GROUPS])> {
         let resolution = f64::from(self.cell_size[0]);
         let mut origin = shape.origin;
@@ -1096,6 +1117,7 @@ impl Tracer<'_> {
     /// of the beam level it meets, in front-to-back order; writes them to
     /// `cells` and their paths to `paths`, and returns how many. `Err` on a
     /// read out of range.
+    #[inline(always)]
     fn next_cells(
         &self,
         beam: &Beam,
@@ -1165,6 +1187,7 @@ impl Tracer<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::Camera;
     use crate::tracer::Setup;
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
@@ -1364,6 +1387,121 @@ mod tests {
         assert!(
             errors > 0,
             "some corruption must lead a pointer out of range"
+        );
+    }
+
+    /// Camera rays row by row (traced tile by tile, module `grid`), with
+    /// rays of another camera after them, through `trace_sequential_into`
+    /// and `trace_batch`.
+    fn image_rays(
+        rng: &mut Rng,
+        centres: &[[f32; 3]],
+        width: u32,
+        height: u32,
+    ) -> (Vec<Ray>, usize) {
+        let target = centres[(rng.next() % centres.len() as u64) as usize];
+        let mut position = [0; 3].map(|_| rng.unit() * 4.0 - 1.5);
+        if rng.next().is_multiple_of(3) {
+            // Inside the cube: no packets.
+            position = [0; 3].map(|_| 0.2 + rng.unit() * 0.6);
+        }
+        let camera = |position: [f32; 3], fov: f32| Camera {
+            position: position.map(f64::from),
+            look_at: target.map(f64::from),
+            up: [0.0, 1.0, 0.0],
+            fov_y_degrees: f64::from(10.0 + 40.0 * fov),
+        };
+        let fov = rng.unit();
+        let mut rays = camera(position, fov)
+            .frame()
+            .unwrap()
+            .rays(width, height, None);
+        let image = rays.len();
+        let other = [0; 3].map(|_| rng.unit() * 4.0 - 1.5);
+        let frame = camera(other, fov).frame().unwrap();
+        rays.extend(frame.rays(width / 2 + 3, 11, None));
+        (rays, image)
+    }
+
+    #[test]
+    fn row_major_images_answer_like_single_rays() {
+        let mut rng = Rng(41);
+        let (mut hit_count, mut total) = (0, 0);
+        for (width, height) in [(61, 45), (128, 72), (40, 17), (16, 8), (200, 40)] {
+            let (bytes, centres) = scene(&mut rng);
+            let dag = Dag::open(&bytes).unwrap();
+            let tracer = Tracer::new(&dag).unwrap();
+            let (rays, image) = image_rays(&mut rng, &centres, width, height);
+            assert_eq!(
+                crate::grid::find_grid(&rays).map(|g| g.len()),
+                Some(image),
+                "{width}x{height}"
+            );
+            let single: Vec<Hit> = rays.iter().map(|r| tracer.trace(r).unwrap()).collect();
+            let mut hits = vec![Hit::MISS; rays.len()];
+            tracer.trace_sequential_into(&rays, &mut hits).unwrap();
+            // Generic rays: no exact ties, so the very same answers.
+            for (k, (a, b)) in single.iter().zip(&hits).enumerate() {
+                assert_eq!(a, b, "{width}x{height}, ray {k}: {:?}", rays[k]);
+            }
+            assert_eq!(tracer.trace_batch(&rays).unwrap(), single);
+            hit_count += single.iter().filter(|h| h.hit).count();
+            total += rays.len();
+        }
+        assert!(hit_count * 50 > total, "{hit_count} of {total} rays hit");
+    }
+
+    #[test]
+    fn malformed_dags_fail_in_images_like_single_rays() {
+        let mut rng = Rng(43);
+        let (bytes, centres) = scene(&mut rng);
+        // The node levels' bytes (a changed leaf mask gives other answers,
+        // not errors).
+        let nodes: Vec<(usize, usize)> = {
+            let dag = Dag::open(&bytes).unwrap();
+            let levels = dag.levels();
+            levels[..levels.len() - 1]
+                .iter()
+                .map(|l| (l.file_offset as usize, l.bytes.len()))
+                .collect()
+        };
+        let mut errors = 0;
+        for case in 0..60 {
+            let (rays, _) = image_rays(&mut rng, &centres, 48, 24);
+            let mut corrupt = bytes.clone();
+            for _ in 0..1 + case % 3 {
+                let (start, len) = nodes[(rng.next() % nodes.len() as u64) as usize];
+                corrupt[start + (rng.next() % len as u64) as usize] = rng.next() as u8;
+            }
+            let Ok(dag) = Dag::open(&corrupt) else {
+                continue;
+            };
+            let Ok(tracer) = Tracer::new(&dag) else {
+                continue;
+            };
+            let single: Vec<_> = rays.iter().map(|r| tracer.trace(r)).collect();
+            let mut hits = vec![Hit::MISS; rays.len()];
+            for batch in [
+                tracer.trace_sequential_into(&rays, &mut hits),
+                tracer.trace_batch_into(&rays, &mut hits),
+            ] {
+                // The batch reports the error of one of its rays (the first
+                // in the order it traces them).
+                match batch {
+                    Ok(()) => {
+                        let single: Vec<Hit> = single.iter().map(|h| h.clone().unwrap()).collect();
+                        assert_eq!(single, hits);
+                    }
+                    Err(e) => {
+                        assert!(single.contains(&Err(e)));
+                        errors += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            errors >= 10,
+            "{errors}: corruption must often lead a pointer out of range"
         );
     }
 

@@ -2,6 +2,7 @@
 
 use rayon::prelude::*;
 
+use crate::grid;
 use crate::tracer::{TraceError, Tracer};
 use dagfmt::batch::{Hit, Ray};
 
@@ -20,8 +21,61 @@ impl Tracer<'_> {
 
     /// [`Tracer::trace_batch`] into a caller's buffer (no allocation): hit `i`
     /// answers ray `i`; when the lengths differ only the common prefix is
-    /// traced.
+    /// traced. Row-major images of rays (see [`Tracer::trace_sequential_into`])
+    /// are split into strips of 8 rows, traced tile by tile; the other rays
+    /// into chunks.
     pub fn trace_batch_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
+        let count = rays.len().min(hits.len());
+        let (rays, hits) = (&rays[..count], &mut hits[..count]);
+        if !self.packets {
+            return self.trace_chunks(rays, hits);
+        }
+        // Images start where a run of rays with one start begins: at the
+        // first ray, and where the start changes (looked for every
+        // `STRIDE` rays, then ray by ray back to the change).
+        const STRIDE: usize = 64;
+        let mut done = 0;
+        let mut i = 0;
+        let mut previous = 0;
+        while i < count {
+            if i > 0 && grid::same_start(&rays[i], &rays[previous]) {
+                previous = i;
+                i += STRIDE;
+                continue;
+            }
+            // The first ray of the new run (after `previous`).
+            let mut start = i;
+            while start > previous + 1 && !grid::same_start(&rays[start - 1], &rays[previous]) {
+                start -= 1;
+            }
+            if let Some(image) = grid::find_grid(&rays[start..]) {
+                self.trace_chunks(&rays[done..start], &mut hits[done..start])?;
+                let end = start + image.len();
+                let strip = image.width * grid::TILE;
+                rays[start..end]
+                    .par_chunks(strip)
+                    .zip(hits[start..end].par_chunks_mut(strip))
+                    .try_for_each(|(rays, hits)| {
+                        let rows = rays.len() / image.width;
+                        let strip = grid::ImageGrid {
+                            width: image.width,
+                            rows,
+                        };
+                        self.trace_image_sequential(rays, hits, strip)
+                    })?;
+                done = end;
+                i = end;
+                previous = end.saturating_sub(1);
+                continue;
+            }
+            previous = i;
+            i += STRIDE;
+        }
+        self.trace_chunks(&rays[done..count], &mut hits[done..count])
+    }
+
+    /// `rays` in chunks of [`CHUNK`] on all cores.
+    fn trace_chunks(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
         rays.par_chunks(CHUNK)
             .zip(hits.par_chunks_mut(CHUNK))
             .try_for_each(|(rays, hits)| self.trace_sequential_into(rays, hits))

@@ -69,8 +69,24 @@ mod state {
 
 /// Whether this processor runs the vector traversal (the result is cached by
 /// the standard library).
+#[inline]
 pub(crate) fn available() -> bool {
-    std::is_x86_feature_detected!("avx2")
+    use std::sync::atomic::{AtomicU8, Ordering};
+    // 0: not known yet, 1: no, 2: yes. One load on the hot paths that ask.
+    static AVAILABLE: AtomicU8 = AtomicU8::new(0);
+    match AVAILABLE.load(Ordering::Relaxed) {
+        0 => {
+            let yes = std::is_x86_feature_detected!("avx2")
+                && std::is_x86_feature_detected!("bmi1")
+                && std::is_x86_feature_detected!("bmi2")
+                && std::is_x86_feature_detected!("popcnt")
+                && std::is_x86_feature_detected!("lzcnt")
+                && std::is_x86_feature_detected!("fma");
+            AVAILABLE.store(1 + u8::from(yes), Ordering::Relaxed);
+            yes
+        }
+        v => v == 2,
+    }
 }
 
 /// Entries of the per-level tables: three vectors, more than the most
@@ -250,7 +266,8 @@ pub(crate) fn trace_lanes(
 fn try_trace_lanes(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> Result<(), Abandon> {
     let sections = Sections::new(tracer).ok_or(Abandon)?;
     let mut groups = [Group::default(); GROUPS];
-    run(tracer, &sections, &mut groups, rays, hits)
+    // SAFETY: only called where `available()` found the features.
+    unsafe { run(tracer, &sections, &mut groups, rays, hits) }
 }
 
 /// [`trace_lanes`] without the scalar fallback: `false` when the vector
@@ -263,7 +280,8 @@ pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &m
 /// The vector traversal of `rays` into `hits`: the groups step in turn, and
 /// between their steps the lanes they flagged get their scalar work (a brick
 /// test, an answer, a new ray). `Err` when a fault or an error stopped it.
-fn run(
+#[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
+unsafe fn run(
     tracer: &Tracer<'_>,
     sections: &Sections,
     groups: &mut [Group; GROUPS],
@@ -359,6 +377,7 @@ struct Ahead {
 
 /// Gives `lane` the next ray that needs a traversal, answering on the spot
 /// those that do not; leaves it idle when the rays run out.
+#[inline(always)]
 fn refill(
     tracer: &Tracer<'_>,
     group: &mut Group,

@@ -596,17 +596,84 @@ impl<'a> Tracer<'a> {
     /// the first error met.
     pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
         let count = rays.len().min(hits.len());
+        let (rays, hits) = (&rays[..count], &mut hits[..count]);
         if !self.packets {
-            return self.trace_lanes(&rays[..count], &mut hits[..count]);
+            return self.trace_lanes(rays, hits);
         }
-        // Runs of coherent rays go as packets (see `packet`), the rest
-        // through the interleaved lanes.
+        #[cfg(target_arch = "x86_64")]
+        if crate::simd::available() {
+            // SAFETY: `simd::available` found the features.
+            return unsafe { self.trace_runs_avx2(rays, hits) };
+        }
+        self.trace_runs::<true>(rays, hits)
+    }
+
+    /// [`Tracer::trace_runs`] compiled for the processors with AVX2 (and the
+    /// bit-manipulation instructions that come with it).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
+    unsafe fn trace_runs_avx2(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
+        self.trace_runs::<true>(rays, hits)
+    }
+
+    /// The rays of a row-major image `grid` (module `grid`) on the calling
+    /// thread, tile by tile; for the batch API's tasks.
+    pub(crate) fn trace_image_sequential(
+        &self,
+        rays: &[Ray],
+        hits: &mut [Hit],
+        grid: crate::grid::ImageGrid,
+    ) -> Result<(), TraceError> {
+        #[cfg(target_arch = "x86_64")]
+        if crate::simd::available() {
+            // SAFETY: `simd::available` found the features.
+            return unsafe { self.trace_image_avx2(rays, hits, grid) };
+        }
+        self.trace_image(rays, hits, grid)
+    }
+
+    /// [`Tracer::trace_image`] compiled like [`Tracer::trace_runs_avx2`].
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
+    unsafe fn trace_image_avx2(
+        &self,
+        rays: &[Ray],
+        hits: &mut [Hit],
+        grid: crate::grid::ImageGrid,
+    ) -> Result<(), TraceError> {
+        self.trace_image(rays, hits, grid)
+    }
+
+    /// The batch with packets: row-major images of rays (with `IMAGES`) are
+    /// traced tile by tile (module `grid`), other runs of coherent rays as
+    /// packets (module `packet`), the rest through the interleaved lanes.
+    #[inline(always)]
+    fn trace_runs<const IMAGES: bool>(
+        &self,
+        rays: &[Ray],
+        hits: &mut [Hit],
+    ) -> Result<(), TraceError> {
+        let count = rays.len().min(hits.len());
         let mut i = 0;
         let mut run = 0;
+        // The start (origin, bounds, level) of the last run looked at for an
+        // image: each run is looked at once.
+        let mut looked_at: Option<&Ray> = None;
         while i < count {
             if !crate::packet::may_start_packet(&rays[i..count]) {
                 i += 1;
                 continue;
+            }
+            if IMAGES && looked_at.is_none_or(|r| !crate::grid::same_start(r, &rays[i])) {
+                looked_at = Some(&rays[i]);
+                if let Some(grid) = crate::grid::find_grid(&rays[i..count]) {
+                    self.trace_lanes(&rays[run..i], &mut hits[run..i])?;
+                    let end = i + grid.len();
+                    self.trace_image(&rays[i..end], &mut hits[i..end], grid)?;
+                    i = end;
+                    run = i;
+                    continue;
+                }
             }
             let shape = self.packet_shape(&rays[i..count]);
             let n = shape.len;
@@ -622,6 +689,37 @@ impl<'a> Tracer<'a> {
             run = i;
         }
         self.trace_lanes(&rays[run..count], &mut hits[run..count])
+    }
+
+    /// The rays of a row-major image (`grid`, found by `grid::find_grid`),
+    /// tile by tile: each tile's rays are gathered, traced as a batch of
+    /// their own (a packet where they make one), and their hits scattered
+    /// back.
+    #[inline(always)]
+    fn trace_image(
+        &self,
+        rays: &[Ray],
+        hits: &mut [Hit],
+        grid: crate::grid::ImageGrid,
+    ) -> Result<(), TraceError> {
+        const TILE_RAYS: usize = crate::grid::TILE * crate::grid::TILE;
+        let mut tile_rays = [rays[0]; TILE_RAYS];
+        let mut tile_hits = [Hit::MISS; TILE_RAYS];
+        let mut result = Ok(());
+        crate::grid::tiles(grid, |indices| {
+            if result.is_err() {
+                return;
+            }
+            let n = indices.len();
+            for (slot, &i) in tile_rays.iter_mut().zip(indices) {
+                *slot = rays[i];
+            }
+            result = self.trace_runs::<false>(&tile_rays[..n], &mut tile_hits[..n]);
+            for (hit, &i) in tile_hits.iter().zip(indices) {
+                hits[i] = *hit;
+            }
+        });
+        result
     }
 
     /// [`Tracer::trace_sequential_into`] without packets: several rays in

@@ -61,8 +61,8 @@ use glam::{Vec3A, Vec4};
 
 use crate::tables::FIRST;
 use crate::tracer::{
-    CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, prefetch,
-    prefetch_address,
+    CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, max, min,
+    prefetch, prefetch_address,
 };
 use dagfmt::batch::{Hit, Ray};
 
@@ -914,6 +914,24 @@ impl Tracer<'_> {
             let half = size * 0.5;
             let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
             let child_level = level + 1;
+            if child_level + 1 == stop && stop != ray_level {
+                // A node whose children are bricks: its rays go on one by
+                // one (few rays reach a node this small).
+                self.visit_bottom(
+                    child_level,
+                    pointer,
+                    child_pos,
+                    half,
+                    child_rays,
+                    walks,
+                    origin,
+                    neg,
+                    (path, &frames[..=top]),
+                    alive,
+                    hits,
+                )?;
+                continue;
+            }
             if child_level < stop {
                 top += 1;
                 self.visit_subtree_node(
@@ -973,6 +991,125 @@ impl Tracer<'_> {
                 *alive &= !(1 << r);
             }
         }
+    }
+
+    /// The visit of a node whose children are bricks (the level above the
+    /// leaf level) by the rays `rays` of a packet, one ray at a time: each
+    /// ray's chain of children from the same plane parameters as
+    /// [`Tracer::resume`], then its bricks in its own front-to-back order,
+    /// tested as [`Tracer::brick`] tests them (the very same numbers: the
+    /// brick's outer planes are the node's, see [`Tracer::brick_in_node`]),
+    /// until one has a voxel. Hits go to `hits` and leave `alive`. `above`
+    /// is the path to the node: the beam cell's and the subtree walk's
+    /// frames, for the attribute index. `Err` on a read out of range.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn visit_bottom(
+        &self,
+        level: u8,
+        word: u32,
+        pos: Vec3A,
+        size: f32,
+        rays: u64,
+        walks: &[Walk; PACKET_RAYS],
+        origin: Vec3A,
+        neg: usize,
+        above: (&[Frame], &[SubtreeFrame]),
+        alive: &mut u64,
+        hits: &mut [Hit],
+    ) -> Result<(), ()> {
+        let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
+        let mask = section.header(level, word).map_err(|_| ())? as u8;
+        let half = size * 0.5;
+        // Offsets of the planes from the packet's origin, as `resume` and
+        // `brick` compute them (so the same roundings).
+        let d_lo = pos - origin;
+        let d_mid = pos + Vec3A::splat(half) - origin;
+        let d_hi = pos + Vec3A::splat(size) - origin;
+        // The rays' chains: (ray, children) for the rays that pass through
+        // some child.
+        let mut chains = [(0u8, 0u8); PACKET_RAYS];
+        let mut n = 0;
+        let mut union = 0u8;
+        let mut m = rays;
+        while m != 0 {
+            let r = m.trailing_zeros() as usize & (PACKET_RAYS - 1);
+            m &= m - 1;
+            let q = &walks[r].q;
+            let t_lo = d_lo * q.inv_dir;
+            let t_hi = d_hi * q.inv_dir;
+            let t_enter = max(t_lo.max_element(), q.tmin);
+            let t_exit = min(t_hi.min_element(), q.tmax);
+            if t_enter <= t_exit {
+                let chain = crate::tracer::chain(neg, t_enter, t_exit, d_mid * q.inv_dir) & mask;
+                chains[n & (PACKET_RAYS - 1)] = (r as u8, chain);
+                n += usize::from(chain != 0);
+                union |= chain;
+            }
+        }
+        if union == 0 {
+            return Ok(());
+        }
+        // The bricks' leaf masks are read soon: start all their reads now.
+        let leaves = &self.levels[usize::from(self.leaf_level) & (LEVEL_SLOTS - 1)];
+        let mut pointers = [0u32; 8];
+        let mut children = union;
+        while children != 0 {
+            let c = children.trailing_zeros() as usize & 7;
+            children &= children - 1;
+            let rank = (mask & ((1u8 << c) - 1)).count_ones();
+            let pointer = section.pointer(level, word, rank).map_err(|_| ())?;
+            prefetch(leaves.bytes, pointer as usize * 8);
+            pointers[c] = pointer;
+        }
+        for &(r, chain) in &chains[..n] {
+            let r = usize::from(r) & (PACKET_RAYS - 1);
+            let q = &walks[r].q;
+            let planes = (d_lo * q.inv_dir, d_mid * q.inv_dir, d_hi * q.inv_dir);
+            let mut remaining = chain;
+            while remaining != 0 {
+                let c = FIRST[neg][usize::from(remaining)];
+                remaining &= !(1 << c);
+                let pointer = pointers[usize::from(c) & 7];
+                let child = (usize::from(c) ^ neg) & 7;
+                let brick_pos = pos + CHILD_STEPS[child] * half;
+                let Some((cell_pos, cell_level)) =
+                    self.brick_in_node(q, pointer, brick_pos, child, planes)?
+                else {
+                    continue;
+                };
+                // The path to the cell matters only for its attribute index.
+                let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
+                if self.index_kind() {
+                    let (path, frames) = above;
+                    stack[..path.len()].copy_from_slice(path);
+                    let node = Frame {
+                        word,
+                        mask,
+                        ..Frame::default()
+                    };
+                    let walked = frames.iter().map(|f| Frame {
+                        word: f.word,
+                        mask: f.mask,
+                        ..Frame::default()
+                    });
+                    for (k, f) in walked.chain([node]).enumerate() {
+                        stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = f;
+                    }
+                }
+                hits[r] = self
+                    .finish(
+                        &walks[r].ray(),
+                        Some((cell_pos, cell_level, pointer)),
+                        &stack,
+                        None,
+                    )
+                    .map_err(|_| ())?;
+                *alive &= !(1 << r);
+                break;
+            }
+        }
+        Ok(())
     }
 
     /// Where the nodes of `level` are read, for prefetching, and their record

@@ -241,7 +241,7 @@ impl Level<'_> {
 
     /// The leaf mask at `index` (leaf level).
     #[inline(always)]
-    fn leaf(&self, level: u8, index: u32) -> Result<u64, Fault> {
+    pub(crate) fn leaf(&self, level: u8, index: u32) -> Result<u64, Fault> {
         let at = index as usize * 8;
         match self.bytes.get(at..at + 8) {
             Some(&[a, b, c, d, e, f, g, h]) => Ok(u64::from_le_bytes([a, b, c, d, e, f, g, h])),
@@ -1361,6 +1361,74 @@ impl<'a> Tracer<'a> {
         None
     }
 
+    /// [`Tracer::brick`] for the brick `leaf` at mirrored position `pos`,
+    /// mirrored child `child` of a node whose plane parameters `planes`
+    /// (lower, middle, upper) the ray's visit of the node computed: the
+    /// brick's outer planes are among the node's (the same numbers, since
+    /// every plane parameter is `(plane - origin) * inv` of the same exact
+    /// plane), so only its inner planes are computed here. The very same
+    /// answers as `brick`; `Err` for a leaf outside its level.
+    #[inline(always)]
+    pub(crate) fn brick_in_node(
+        &self,
+        p: &Prepared,
+        leaf: u32,
+        pos: Vec3A,
+        child: usize,
+        planes: (Vec3A, Vec3A, Vec3A),
+    ) -> Result<Option<(Vec3A, u8)>, ()> {
+        let bits = self.levels[usize::from(self.leaf_level) & LEVEL_INDEX]
+            .leaf(self.leaf_level, leaf)
+            .map_err(|_| ())?;
+        let neg = p.neg;
+        let upper = CHILD_STEPS[child & 7].cmpgt(Vec3A::ZERO);
+        let (t_lo, t_mid, t_hi) = planes;
+        let t0 = Vec3A::select(upper, t_mid, t_lo);
+        let t4 = Vec3A::select(upper, t_hi, t_mid);
+        let t_enter = max(t0.max_element(), p.tmin);
+        let t_exit = min(t4.min_element(), p.tmax);
+        if t_enter > t_exit {
+            return Ok(None);
+        }
+        let t2 = (pos + Vec3A::splat(2.0) - p.origin) * p.inv_dir;
+        let mut remaining = chain(neg, t_enter, t_exit, t2) & sub_brick_mask(bits);
+        if remaining == 0 {
+            return Ok(None);
+        }
+        if p.level < self.depth {
+            let sub = usize::from(FIRST[neg][usize::from(remaining)]);
+            return Ok(Some((
+                pos + CHILD_STEPS[(sub ^ neg) & 7] * 2.0,
+                self.depth - 1,
+            )));
+        }
+        let t1 = (pos + Vec3A::splat(1.0) - p.origin) * p.inv_dir;
+        let t3 = (pos + Vec3A::splat(3.0) - p.origin) * p.inv_dir;
+        while remaining != 0 {
+            let sub = usize::from(FIRST[neg][usize::from(remaining)]);
+            remaining &= !(1 << sub);
+            let m = (sub ^ neg) & 7;
+            let step = CHILD_STEPS[m];
+            let sub_pos = pos + step * 2.0;
+            // The axes on which the sub-brick is the upper half.
+            let upper = step.cmpgt(Vec3A::ZERO);
+            let s_lo = Vec3A::select(upper, t2, t0);
+            let s_mid = Vec3A::select(upper, t3, t1);
+            let s_hi = Vec3A::select(upper, t4, t2);
+            let s_enter = max(s_lo.max_element(), p.tmin);
+            let s_exit = min(s_hi.min_element(), p.tmax);
+            if s_enter > s_exit {
+                continue;
+            }
+            let voxels = chain(neg, s_enter, s_exit, s_mid) & (bits >> (8 * sub)) as u8;
+            if voxels != 0 {
+                let v = (usize::from(FIRST[neg][usize::from(voxels)]) ^ neg) & 7;
+                return Ok(Some((sub_pos + CHILD_STEPS[v], self.depth)));
+            }
+        }
+        Ok(None)
+    }
+
     /// Follows the path of `cell` (at `level`) from the root, filling `stack`
     /// with the interior nodes on the way. `None` when the cell is empty.
     fn lookup(&self, cell: [u32; 3], level: u8, stack: &mut Stack) -> Result<Option<Found>, Fault> {
@@ -1624,6 +1692,90 @@ pub(crate) mod tests {
         let built =
             DagBuilder::from_voxels(6, AttributeKind::VoxelCount, voxels).expect("valid voxels");
         built.to_bytes()
+    }
+
+    #[test]
+    fn brick_in_node_is_brick() {
+        let mut rng = Rng(0xb41c);
+        let bytes = scene(&mut rng);
+        let dag = Dag::open(&bytes).expect("built DAG opens");
+        let tracer = Tracer::new(&dag).expect("tracer");
+        let leaves = tracer.levels[usize::from(tracer.leaf_level)].bytes.len() / 8;
+        let (mut compared, mut found) = (0, 0);
+        for i in 0..100_000 {
+            // Generic rays, and rays on the grid's planes with small integer
+            // directions: ties between planes, ends on faces.
+            let (origin, dir) = if i % 2 == 0 {
+                (
+                    [0; 3].map(|_| rng.range(-0.5, 1.5)),
+                    [0; 3].map(|_| rng.range(-1.0, 1.0)),
+                )
+            } else {
+                (
+                    [0; 3].map(|_| (rng.next() % 80) as f32 / 64.0 - 0.1),
+                    [0; 3].map(|_| (rng.next() % 5) as f32 - 2.0),
+                )
+            };
+            let ray = Ray {
+                origin,
+                dir,
+                tmin: if i % 3 == 0 { rng.range(0.0, 0.5) } else { 0.0 },
+                tmax: if i % 5 == 0 {
+                    rng.range(0.2, 2.0)
+                } else {
+                    f32::INFINITY
+                },
+                level: (i % 7 == 0).then_some(5),
+            };
+            let Ok(Setup::Trace(p)) = tracer.setup(&ray) else {
+                continue;
+            };
+            // A node of edge 8 on the ray's path through the occupied box.
+            let Some(q) = tracer.clip(&p) else {
+                continue;
+            };
+            let t = rng.range(q.tmin, q.tmax);
+            let point = q.origin + Vec3A::splat(t) / q.inv_dir;
+            let node = point
+                .to_array()
+                .map(|v| ((v / 8.0).floor() * 8.0).clamp(0.0, 56.0));
+            let pos = Vec3A::from_array(node);
+            let planes = (
+                (pos - p.origin) * p.inv_dir,
+                (pos + Vec3A::splat(4.0) - p.origin) * p.inv_dir,
+                (pos + Vec3A::splat(8.0) - p.origin) * p.inv_dir,
+            );
+            let child = (rng.next() % 8) as usize;
+            let brick_pos = pos + CHILD_STEPS[child] * 4.0;
+            let leaf = (rng.next() % leaves as u64) as u32;
+            let mut fault = None;
+            let expected = tracer.brick(&p, leaf, brick_pos, &mut fault);
+            assert!(fault.is_none());
+            let got = tracer.brick_in_node(&p, leaf, brick_pos, child, planes);
+            assert_eq!(got, Ok(expected), "{ray:?} node {node:?} child {child}");
+            compared += 1;
+            found += usize::from(expected.is_some());
+        }
+        assert!(
+            compared > 25_000 && found > 2500,
+            "{compared} compared, {found} found"
+        );
+        // A leaf outside its level.
+        let p = match tracer.setup(&Ray {
+            origin: [-1.0; 3],
+            dir: [1.0; 3],
+            tmin: 0.0,
+            tmax: f32::INFINITY,
+            level: None,
+        }) {
+            Ok(Setup::Trace(p)) => p,
+            _ => unreachable!("a ray through the cube"),
+        };
+        let z = Vec3A::ZERO;
+        assert_eq!(
+            tracer.brick_in_node(&p, leaves as u32, z, 0, (z, z, z)),
+            Err(())
+        );
     }
 
     /// Rays from around the cube towards it, some with a level of detail,

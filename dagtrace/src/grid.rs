@@ -23,8 +23,9 @@
 //! bit for bit). Nothing of the answers depends on this being right: a
 //! gathered tile whose rays do not make a packet is traced ray by ray, so a
 //! wrong guess costs time, never correctness. Then [`tiles`] lists the 8×8
-//! tiles of the image strip by strip, each tile's pixels in Z order (4×4
-//! blocks first, like the groups of a packet).
+//! tiles of the image strip by strip, each tile as runs of consecutive rays
+//! (its 4×4 blocks, the groups of a packet, row by row), copied into a
+//! packet of their own.
 
 use dagfmt::batch::Ray;
 
@@ -118,29 +119,65 @@ pub(crate) fn find_grid(rays: &[Ray]) -> Option<ImageGrid> {
     (rows >= TILE).then_some(ImageGrid { width, rows })
 }
 
-/// The x of pixel `z` of a tile in Z (Morton) order: the even bits of `z`.
-#[inline(always)]
-fn morton_x(z: usize) -> usize {
-    (z & 1) | (z >> 1 & 2) | (z >> 2 & 4)
+/// Edge of the blocks of a tile: a packet's groups of 16 rays.
+const BLOCK: usize = 4;
+
+/// The tiles of `grid`, strip by strip (8 rows at a time) and left to
+/// right in a strip, each as runs of consecutive rays (first index, length):
+/// the tile's 4×4 blocks in Z order, each block row by row, so that every
+/// 16 rays of a full tile are one block (a group of its packet). Tiles at
+/// the right and bottom edges hold the rays that exist.
+pub(crate) fn tiles(grid: ImageGrid) -> Tiles {
+    Tiles { grid, x0: 0, y0: 0 }
 }
 
-/// Calls `tile` with the ray indices of every tile of `grid`, strip by strip
-/// (8 rows at a time) and left to right in a strip, each tile's pixels in Z
-/// order; tiles at the right and bottom edges hold the pixels that exist.
-pub(crate) fn tiles(grid: ImageGrid, mut tile: impl FnMut(&[usize])) {
-    let mut indices = [0usize; TILE * TILE];
-    for y0 in (0..grid.rows).step_by(TILE) {
-        for x0 in (0..grid.width).step_by(TILE) {
-            let mut n = 0;
-            for z in 0..TILE * TILE {
-                let (x, y) = (x0 + morton_x(z), y0 + morton_x(z >> 1));
-                if x < grid.width && y < grid.rows {
-                    indices[n] = y * grid.width + x;
-                    n += 1;
-                }
-            }
-            tile(&indices[..n]);
+/// The iterator of [`tiles`].
+#[derive(Clone, Debug)]
+pub(crate) struct Tiles {
+    grid: ImageGrid,
+    x0: usize,
+    y0: usize,
+}
+
+/// One tile of [`tiles`]: `runs[..len]`.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct TileRuns {
+    pub(crate) runs: [(usize, usize); TILE * TILE / BLOCK],
+    pub(crate) len: usize,
+}
+
+impl Iterator for Tiles {
+    type Item = TileRuns;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<TileRuns> {
+        let grid = self.grid;
+        if self.y0 >= grid.rows || grid.width == 0 {
+            return None;
         }
+        let (x0, y0) = (self.x0, self.y0);
+        self.x0 += TILE;
+        if self.x0 >= grid.width {
+            self.x0 = 0;
+            self.y0 += TILE;
+        }
+        let mut tile = TileRuns {
+            runs: [(0, 0); TILE * TILE / BLOCK],
+            len: 0,
+        };
+        for block in 0..4 {
+            let bx = x0 + (block & 1) * BLOCK;
+            let by = y0 + (block >> 1) * BLOCK;
+            if bx >= grid.width {
+                continue;
+            }
+            let len = BLOCK.min(grid.width - bx);
+            for y in by..(by + BLOCK).min(grid.rows) {
+                tile.runs[tile.len & (TILE * TILE / BLOCK - 1)] = (y * grid.width + bx, len);
+                tile.len += 1;
+            }
+        }
+        Some(tile)
     }
 }
 
@@ -219,24 +256,29 @@ mod tests {
     }
 
     #[test]
-    fn tiles_cover_every_pixel_once_in_z_order() {
-        for (w, h) in [(16, 8), (17, 9), (64, 70)] {
+    fn tiles_cover_every_pixel_once_in_blocks() {
+        for (w, h) in [(16, 8), (17, 9), (64, 70), (6, 3)] {
             let grid = ImageGrid { width: w, rows: h };
             let mut seen = vec![0u32; w * h];
             let mut tiles_seen = 0;
-            tiles(grid, |t| {
+            for tile in tiles(grid) {
+                let runs = &tile.runs[..tile.len];
                 tiles_seen += 1;
-                for &i in t {
+                let rays: Vec<usize> = runs.iter().flat_map(|&(i, n)| i..i + n).collect();
+                for &i in &rays {
                     seen[i] += 1;
                 }
-                // A full tile: its first 16 pixels are the top-left 4×4 block.
-                if t.len() == 64 {
-                    let (x0, y0) = (t[0] % w, t[0] / w);
-                    for &i in &t[..16] {
-                        assert!(i % w - x0 < 4 && i / w - y0 < 4);
+                // Each tile within 8×8 pixels; in a full tile, each 16 rays
+                // are a 4×4 block.
+                let (x0, y0) = (rays[0] % w, rays[0] / w);
+                assert!(rays.iter().all(|&i| i % w - x0 < 8 && i / w - y0 < 8));
+                if rays.len() == 64 {
+                    for block in rays.chunks(16) {
+                        let (bx, by) = (block[0] % w, block[0] / w);
+                        assert!(block.iter().all(|&i| i % w - bx < 4 && i / w - by < 4));
                     }
                 }
-            });
+            }
             assert!(seen.iter().all(|&n| n == 1), "{w}x{h}");
             assert_eq!(tiles_seen, w.div_ceil(8) * h.div_ceil(8));
         }

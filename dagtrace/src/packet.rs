@@ -240,6 +240,15 @@ struct SubtreeFrame {
     pointers: [u32; 8],
 }
 
+impl PacketShape {
+    /// No packet.
+    pub(crate) const NONE: PacketShape = PacketShape {
+        len: 0,
+        ranges: [(Vec3A::INFINITY, Vec3A::ZERO); GROUPS],
+        origin: [0.0; 3],
+    };
+}
+
 /// A packet found by [`Tracer::packet_shape`]: its length, and per group of
 /// [`GROUP_RAYS`] rays the range of `|d_a|` (empty, `lo > hi`, for groups
 /// past the end).
@@ -498,11 +507,7 @@ impl Tracer<'_> {
     /// over the rays: it runs at every packet of a batch.
     #[inline(always)]
     pub(crate) fn packet_shape(&self, rays: &[Ray]) -> PacketShape {
-        let none = PacketShape {
-            len: 0,
-            ranges: [(Vec3A::INFINITY, Vec3A::ZERO); GROUPS],
-            origin: [0.0; 3],
-        };
+        let none = PacketShape::NONE;
         if self.beam_level() == 0 {
             return none;
         }

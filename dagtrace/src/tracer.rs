@@ -705,21 +705,44 @@ impl<'a> Tracer<'a> {
         const TILE_RAYS: usize = crate::grid::TILE * crate::grid::TILE;
         let mut tile_rays = [rays[0]; TILE_RAYS];
         let mut tile_hits = [Hit::MISS; TILE_RAYS];
-        let mut result = Ok(());
-        crate::grid::tiles(grid, |indices| {
-            if result.is_err() {
-                return;
+        for tile in crate::grid::tiles(grid) {
+            let runs = &tile.runs[..tile.len];
+            // Runs of 4 (all but those at the edges) copied as arrays: no
+            // call of `memcpy` for each.
+            let mut n = 0;
+            for &(i, len) in runs {
+                match (tile_rays.get_mut(n..n + 4), rays.get(i..i + 4)) {
+                    (Some(to), Some(from)) if len == 4 => {
+                        let to: &mut [Ray; 4] = to.try_into().expect("four");
+                        *to = *<&[Ray; 4]>::try_from(from).expect("four");
+                    }
+                    _ => tile_rays[n..n + len].copy_from_slice(&rays[i..i + len]),
+                }
+                n += len;
             }
-            let n = indices.len();
-            for (slot, &i) in tile_rays.iter_mut().zip(indices) {
-                *slot = rays[i];
+            let (tile, tile_out) = (&tile_rays[..n], &mut tile_hits[..n]);
+            // Mostly one packet of the whole tile.
+            let shape = if crate::packet::may_start_packet(tile) {
+                self.packet_shape(tile)
+            } else {
+                crate::packet::PacketShape::NONE
+            };
+            if shape.len != n || !self.trace_packet(tile, tile_out, &shape) {
+                self.trace_runs::<false>(tile, tile_out)?;
             }
-            result = self.trace_runs::<false>(&tile_rays[..n], &mut tile_hits[..n]);
-            for (hit, &i) in tile_hits.iter().zip(indices) {
-                hits[i] = *hit;
+            let mut n = 0;
+            for &(i, len) in runs {
+                match (hits.get_mut(i..i + 4), tile_hits.get(n..n + 4)) {
+                    (Some(to), Some(from)) if len == 4 => {
+                        let to: &mut [Hit; 4] = to.try_into().expect("four");
+                        *to = *<&[Hit; 4]>::try_from(from).expect("four");
+                    }
+                    _ => hits[i..i + len].copy_from_slice(&tile_hits[n..n + len]),
+                }
+                n += len;
             }
-        });
-        result
+        }
+        Ok(())
     }
 
     /// [`Tracer::trace_sequential_into`] without packets: several rays in

@@ -1083,9 +1083,10 @@ impl Tracer<'_> {
                 else {
                     continue;
                 };
-                // The path to the cell matters only for its attribute index.
-                let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
-                if self.index_kind() {
+                let cell = (cell_pos, cell_level, pointer);
+                hits[r] = if self.index_kind() {
+                    // The path to the cell, for its attribute index.
+                    let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
                     let (path, frames) = above;
                     stack[..path.len()].copy_from_slice(path);
                     let node = Frame {
@@ -1101,15 +1102,11 @@ impl Tracer<'_> {
                     for (k, f) in walked.chain([node]).enumerate() {
                         stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = f;
                     }
+                    self.walk_hit(&walks[r], cell, Some(&stack))
+                } else {
+                    self.walk_hit(&walks[r], cell, None)
                 }
-                hits[r] = self
-                    .finish(
-                        &walks[r].ray(),
-                        Some((cell_pos, cell_level, pointer)),
-                        &stack,
-                        None,
-                    )
-                    .map_err(|_| ())?;
+                .map_err(|_| ())?;
                 *alive &= !(1 << r);
                 break;
             }

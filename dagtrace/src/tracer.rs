@@ -880,9 +880,41 @@ impl<'a> Tracer<'a> {
             return Ok(Hit::MISS);
         };
         let (found, t, face) = self.found(p, pos, level, leaf);
-        let index = self
-            .index(&found, p.level, stack)
-            .map_err(|f| self.fault_error(f))?;
+        let index = if self.index_kind() {
+            self.index(&found, p.level, stack)
+                .map_err(|f| self.fault_error(f))?
+        } else {
+            None
+        };
+        Ok(Hit {
+            hit: true,
+            t,
+            voxel: found.cell,
+            level: p.level,
+            face,
+            index,
+        })
+    }
+
+    /// [`Tracer::finish`] for the walk `walk` that found `cell`: its hit,
+    /// with the attribute index from the path in `stack` (given only where
+    /// hits carry one, see [`Tracer::index_kind`]).
+    #[inline(always)]
+    pub(crate) fn walk_hit(
+        &self,
+        walk: &Walk,
+        cell: Cell,
+        stack: Option<&Stack>,
+    ) -> Result<Hit, TraceError> {
+        let (pos, level, leaf) = cell;
+        let p = &walk.q;
+        let (found, t, face) = self.found_from(p, walk.ray_tmin, pos, level, leaf);
+        let index = match stack {
+            Some(stack) if self.index_kind() => self
+                .index(&found, p.level, stack)
+                .map_err(|f| self.fault_error(f))?,
+            _ => None,
+        };
         Ok(Hit {
             hit: true,
             t,
@@ -1293,8 +1325,21 @@ impl<'a> Tracer<'a> {
     /// The answer for the cell of `level` whose lower corner is at mirrored
     /// grid position `pos`: the cell in the file's frame, its entry parameter
     /// and its entry face.
-    #[inline]
+    #[inline(always)]
     fn found(&self, p: &Prepared, pos: Vec3A, level: u8, leaf: u32) -> (Found, f32, u8) {
+        self.found_from(p, p.tmin, pos, level, leaf)
+    }
+
+    /// [`Tracer::found`] for the ray `p` with its segment starting at `tmin`.
+    #[inline(always)]
+    fn found_from(
+        &self,
+        p: &Prepared,
+        tmin: f32,
+        pos: Vec3A,
+        level: u8,
+        leaf: u32,
+    ) -> (Found, f32, u8) {
         // Entry: the latest slab start of the moving axes, or tmin (face 0).
         let t_lo = (pos - p.origin) * p.inv_dir;
         let t_lo = Vec3A::select(p.moving, t_lo, Vec3A::NEG_INFINITY);
@@ -1305,17 +1350,18 @@ impl<'a> Tracer<'a> {
         let axis = usize::from(!x_largest) * (2 - usize::from(y_next));
         let near = [x, y, z][axis];
         let axis = axis as u8;
-        let (t, face) = if near < p.tmin {
-            (p.tmin, 0)
+        let (t, face) = if near < tmin {
+            (tmin, 0)
         } else {
             (near, 1 + 2 * axis + (p.neg >> axis & 1) as u8)
         };
         let t = (f64::from(t) * p.inv_scale + p.base) as f32;
-        // Cell coordinates: the position over the cell size (exact).
-        let m = (pos * (1.0 / self.cell_size[usize::from(level)]))
-            .to_array()
-            .map(|v| v as u32);
-        let last = (1u32 << level) - 1;
+        // Cell coordinates: the position (an exact multiple of the cell
+        // size, a power of two) over the cell size.
+        let shift = u32::from(self.depth.saturating_sub(level)) & 31;
+        let [px, py, pz] = pos.to_array();
+        let m = [px as u32 >> shift, py as u32 >> shift, pz as u32 >> shift];
+        let last = (1u32 << (level & 31)) - 1;
         // Mirrored back on the axes of negative direction: `last - m`, which
         // is `last ^ m` (m <= last), chosen without a branch (a coin toss
         // per axis for the branch predictor).
@@ -1323,7 +1369,8 @@ impl<'a> Tracer<'a> {
             m.iter().all(|&v| v <= last),
             "a cell outside the grid: {m:?}"
         );
-        let cell = [0, 1, 2].map(|i| m[i] ^ (last & 0u32.wrapping_sub((p.neg >> i & 1) as u32)));
+        let flip = |i: usize| last & 0u32.wrapping_sub((p.neg >> i & 1) as u32);
+        let cell = [m[0] ^ flip(0), m[1] ^ flip(1), m[2] ^ flip(2)];
         (Found { cell, leaf }, t, face)
     }
 

@@ -245,6 +245,7 @@ impl PacketShape {
     pub(crate) const NONE: PacketShape = PacketShape {
         len: 0,
         ranges: [(Vec3A::INFINITY, Vec3A::ZERO); GROUPS],
+        all: (Vec3A::INFINITY, Vec3A::ZERO),
         origin: [0.0; 3],
     };
 }
@@ -256,6 +257,8 @@ impl PacketShape {
 pub(crate) struct PacketShape {
     pub(crate) len: usize,
     ranges: [(Vec3A, Vec3A); GROUPS],
+    /// The union of `ranges`.
+    all: (Vec3A, Vec3A),
     /// The rays' common origin in grid units (not mirrored).
     origin: [f64; 3],
 }
@@ -616,6 +619,11 @@ impl Tracer<'_> {
         }
         if n >= MIN_PACKET_RAYS {
             shape.len = n;
+            for &(lo, hi) in &shape.ranges {
+                if lo.x <= hi.x {
+                    shape.all = (shape.all.0.min(lo), shape.all.1.max(hi));
+                }
+            }
             shape
         } else {
             none
@@ -665,14 +673,10 @@ impl Tracer<'_> {
         let rays = &rays[..n];
         // The beam first: most packets of a camera meet nothing, and then no
         // ray needs even its set-up.
-        let Some((beam, groups)) = self.beams(&rays[0], shape) else {
+        let Some(beam) = self.beams(&rays[0], shape, None) else {
             return false;
         };
         let neg = octant(rays[0].dir);
-        let mut walk = BeamWalk {
-            frames: [BeamFrame::default(); LEVEL_SLOTS],
-            level: None,
-        };
         let root_size = f64::from(self.cell_size[0]);
         // Every occupied cell lies in the box of the occupied cells of the
         // tracer's bounds level: most beams that miss the object miss it.
@@ -681,18 +685,25 @@ impl Tracer<'_> {
             lower.to_array().map(f64::from),
             upper.to_array().map(f64::from),
         );
-        if near_object && beam.meets([0.0; 3], root_size) {
-            let Ok(header) = self.levels[0].header(0, 0) else {
-                return false;
-            };
-            walk.frames[0] = BeamFrame {
-                word: 0,
-                mask: header as u8,
-                remaining: beam.children_met(header as u8, [0.0; 3], root_size, neg),
-                pos: [0.0; 3],
-            };
-            walk.level = Some(0);
+        if !near_object || !beam.meets([0.0; 3], root_size) {
+            // No ray of the packet meets an occupied cell.
+            hits[..n].fill(Hit::MISS);
+            return true;
         }
+        let mut walk = BeamWalk {
+            frames: [BeamFrame::default(); LEVEL_SLOTS],
+            level: None,
+        };
+        let Ok(header) = self.levels[0].header(0, 0) else {
+            return false;
+        };
+        walk.frames[0] = BeamFrame {
+            word: 0,
+            mask: header as u8,
+            remaining: beam.children_met(header as u8, [0.0; 3], root_size, neg),
+            pos: [0.0; 3],
+        };
+        walk.level = Some(0);
         let mut cells = [BeamCell::default(); CELLS_PER_ROUND];
         let mut paths = [Frame::default(); CELLS_PER_ROUND * LEVEL_SLOTS];
         let Ok(mut listed) =
@@ -704,6 +715,10 @@ impl Tracer<'_> {
             // No ray of the packet meets an occupied cell of the beam level.
             hits[..n].fill(Hit::MISS);
             return true;
+        }
+        let mut groups = [beam; GROUPS];
+        if self.beams(&rays[0], shape, Some(&mut groups)).is_none() {
+            return false;
         }
         // The set-up of every ray, as `Tracer::setup` does it, with what the
         // rays share done once. Anything it would treat specially sends the
@@ -1205,12 +1220,18 @@ impl Tracer<'_> {
         Ok(())
     }
 
-    /// The beam of the rays of a packet, and the beams of its groups of
-    /// [`GROUP_RAYS`] consecutive rays (`groups[g]` for `rays[16g..16g + 16]`),
-    /// or `None` when they have no finite extent (which
-    /// [`Tracer::packet_shape`] rules out).
+    /// The beam of the rays of a packet and, with `groups`, the beams of its
+    /// groups of [`GROUP_RAYS`] consecutive rays (`groups[g]` for
+    /// `rays[16g..16g + 16]`), or `None` when they have no finite extent
+    /// (which [`Tracer::packet_shape`] rules out). Most packets of a camera
+    /// meet nothing and need only the packet's beam.
     #[inline(always)]
-    fn beams(&self, first: &Ray, shape: &PacketShape) -> Option<(Beam, [Beam; GROUPS])> {
+    fn beams(
+        &self,
+        first: &Ray,
+        shape: &PacketShape,
+        groups: Option<&mut [Beam; GROUPS]>,
+    ) -> Option<Beam> {
         let resolution = f64::from(self.cell_size[0]);
         let mut origin = shape.origin;
         for (a, o) in origin.iter_mut().enumerate() {
@@ -1229,27 +1250,32 @@ impl Tracer<'_> {
             // arithmetic here (far smaller).
             margin: scale * BEAM_MARGIN,
         };
-        let mut beam = empty;
-        let mut groups = [empty; GROUPS];
-        for (group, &(d_lo, d_hi)) in groups.iter_mut().zip(&shape.ranges) {
-            if d_lo.x > d_hi.x {
-                // A group without rays: a beam that meets nothing.
-                continue;
-            }
-            // Grid units per unit of the ray's parameter t, 1 / |d_a|: its
-            // range over the group from the range of |d_a| (a correctly
-            // rounded division and the scaling by the grid are monotonic,
-            // so this is exactly the range of the rays' own quotients).
+        // Grid units per unit of the ray's parameter t, 1 / |d_a|: its range
+        // over a set of rays from the range of their |d_a| (a correctly
+        // rounded division and the scaling by the grid are monotonic, so
+        // this is exactly the range of the rays' own quotients).
+        let beam_of = |(d_lo, d_hi): (Vec3A, Vec3A)| {
+            let mut beam = empty;
             for a in 0..3 {
-                group.inv_lo[a] = 1.0 / (f64::from(d_hi[a]) * self.grid_scale);
-                group.inv_hi[a] = 1.0 / (f64::from(d_lo[a]) * self.grid_scale);
-                beam.inv_lo[a] = beam.inv_lo[a].min(group.inv_lo[a]);
-                beam.inv_hi[a] = beam.inv_hi[a].max(group.inv_hi[a]);
+                beam.inv_lo[a] = 1.0 / (f64::from(d_hi[a]) * self.grid_scale);
+                beam.inv_hi[a] = 1.0 / (f64::from(d_lo[a]) * self.grid_scale);
+            }
+            beam
+        };
+        let beam = beam_of(shape.all);
+        if let Some(groups) = groups {
+            for (group, &range) in groups.iter_mut().zip(&shape.ranges) {
+                // A group without rays (`lo > hi`): a beam that meets nothing.
+                *group = if range.0.x > range.1.x {
+                    empty
+                } else {
+                    beam_of(range)
+                };
             }
         }
         let finite =
             beam.inv_hi.iter().all(|v| v.is_finite()) && origin.iter().all(|v| v.is_finite());
-        finite.then_some((beam, groups))
+        finite.then_some(beam)
     }
 
     /// Advances the beam walk to the next (up to [`CELLS_PER_ROUND`]) cells

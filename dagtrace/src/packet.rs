@@ -577,9 +577,20 @@ impl Tracer<'_> {
         while n < limit {
             // Eight rays at a time in vectors where the processor can, else
             // one: the rays from `n` on that may join, a prefix.
-            let step = if vectors && n + 8 <= limit { 8 } else { 1 };
+            let step = if vectors && n % GROUP_RAYS == 0 && n + GROUP_RAYS <= limit {
+                GROUP_RAYS
+            } else if vectors && n + 8 <= limit {
+                8
+            } else {
+                1
+            };
             #[cfg(target_arch = "x86_64")]
-            let scanned = if step == 8 {
+            let scanned = if step == GROUP_RAYS {
+                let group: &[Ray; GROUP_RAYS] =
+                    rays[n..n + GROUP_RAYS].try_into().expect("a group of rays");
+                // SAFETY: `simd::available` found AVX2.
+                unsafe { crate::simd::scan_group(group, first) }
+            } else if step == 8 {
                 let eight: &[Ray; 8] = rays[n..n + 8].try_into().expect("eight rays");
                 // SAFETY: `simd::available` found AVX2.
                 unsafe { crate::simd::scan_for_packet(eight, first) }
@@ -591,8 +602,8 @@ impl Tracer<'_> {
             group = (group.0.min(scanned.lo), group.1.max(scanned.hi));
             shortest = shortest.min(scanned.shortest);
             n += scanned.len;
-            // Steps of 8 start at multiples of 8, so a group ends at the end
-            // of a step that took all its rays.
+            // Steps of 16 and 8 start at multiples of theirs, so a group
+            // ends at the end of a step that took all its rays.
             if scanned.len > 0 && n % GROUP_RAYS == 0 {
                 // The spread, checked a group at a time: a group that makes
                 // it too wide ends the packet before it.
@@ -736,6 +747,9 @@ impl Tracer<'_> {
             return false;
         }
         let stop = level.min(self.leaf_level);
+        // The usual case: the rays go down to the bricks, three node levels
+        // below the beam level's cells.
+        let bricks = stop != level && stop == beam_level + 3;
         let mut walks = [Walk::default(); PACKET_RAYS];
         // Rays still looking for their first hit, one bit per ray.
         let mut alive = 0u64;
@@ -803,12 +817,16 @@ impl Tracer<'_> {
                     continue;
                 }
                 let path = &paths[cell.path..cell.path + usize::from(beam_level)];
-                if self
-                    .walk_cell(
+                let walked = if bricks {
+                    self.walk_cell_to_bricks(
                         cell, beam_level, path, &walks, &lanes, rays, &mut alive, hits,
                     )
-                    .is_err()
-                {
+                } else {
+                    self.walk_cell(
+                        cell, beam_level, path, &walks, &lanes, rays, &mut alive, hits,
+                    )
+                };
+                if walked.is_err() {
                     return false;
                 }
             }
@@ -1124,6 +1142,93 @@ impl Tracer<'_> {
                 .map_err(|_| ())?;
                 *alive &= !(1 << r);
                 break;
+            }
+        }
+        Ok(())
+    }
+
+    /// [`Tracer::walk_cell`] for the usual packet, whose rays go down to the
+    /// bricks three node levels below the beam level: the walk of the cell's
+    /// two upper levels as two nested loops (no stack of frames), the level
+    /// above the bricks by [`Tracer::visit_bottom`]. The same visits in the
+    /// same order, so the same answers.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn walk_cell_to_bricks(
+        &self,
+        cell: &BeamCell,
+        beam_level: u8,
+        path: &[Frame],
+        walks: &[Walk; PACKET_RAYS],
+        lanes: &PacketLanes,
+        rays: u64,
+        alive: &mut u64,
+        hits: &mut [Hit],
+    ) -> Result<(), ()> {
+        let first = &walks[rays.trailing_zeros() as usize & (PACKET_RAYS - 1)];
+        let (origin, neg) = (first.q.origin, first.q.neg & 7);
+        let (stop, ray_level) = (first.stop, first.q.level);
+        let size = self.cell_size[usize::from(beam_level)];
+        let (half, quarter) = (size * 0.5, size * 0.25);
+        let (level, middle) = (beam_level, beam_level + 1);
+        let mut frames = [SubtreeFrame::default(); 2];
+        self.visit_subtree_node(
+            &mut frames[0],
+            level,
+            cell.word,
+            cell.pos,
+            size,
+            rays,
+            lanes,
+            origin,
+            neg,
+            self.children_at(middle, stop, ray_level),
+        )?;
+        let mut remaining = frames[0].remaining;
+        while remaining != 0 {
+            let child = FIRST[neg][usize::from(remaining)];
+            remaining &= !(1 << child);
+            let child = usize::from(child) & 7;
+            let child_rays = frames[0].rays[child] & *alive;
+            if child_rays == 0 {
+                continue;
+            }
+            let child_pos = frames[0].pos + CHILD_STEPS[child ^ neg] * half;
+            let pointer = frames[0].pointers[child];
+            self.visit_subtree_node(
+                &mut frames[1],
+                middle,
+                pointer,
+                child_pos,
+                half,
+                child_rays,
+                lanes,
+                origin,
+                neg,
+                self.children_at(middle + 1, stop, ray_level),
+            )?;
+            let mut inner = frames[1].remaining;
+            while inner != 0 {
+                let grandchild = FIRST[neg][usize::from(inner)];
+                inner &= !(1 << grandchild);
+                let grandchild = usize::from(grandchild) & 7;
+                let grandchild_rays = frames[1].rays[grandchild] & *alive;
+                if grandchild_rays == 0 {
+                    continue;
+                }
+                self.visit_bottom(
+                    middle + 1,
+                    frames[1].pointers[grandchild],
+                    frames[1].pos + CHILD_STEPS[grandchild ^ neg] * quarter,
+                    quarter,
+                    grandchild_rays,
+                    walks,
+                    origin,
+                    neg,
+                    (path, &frames),
+                    alive,
+                    hits,
+                )?;
             }
         }
         Ok(())

@@ -435,6 +435,102 @@ fn refill(
 /// The processor must have AVX2.
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn scan_for_packet(rays: &[Ray; 8], first: &Ray) -> ScannedRays {
+    // SAFETY: the caller's.
+    let eight = unsafe { scan_eight(rays, first) };
+    eight.fold(eight.joins.trailing_ones() as usize)
+}
+
+/// [`scan_for_packet`] of sixteen rays (a group of a packet), in two
+/// vectors of eight folded once.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn scan_group(rays: &[Ray; 16], first: &Ray) -> ScannedRays {
+    let (a, b) = rays.split_at(8);
+    // SAFETY: the caller's.
+    let (a, b) = unsafe {
+        (
+            scan_eight(a.try_into().expect("eight"), first),
+            scan_eight(b.try_into().expect("eight"), first),
+        )
+    };
+    let len = (a.joins | b.joins << 8).trailing_ones() as usize;
+    if len <= 8 {
+        return a.fold(len);
+    }
+    // The first eight all join: the rays of both that join, as one vector.
+    let keep = lanes_below(len - 8);
+    let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
+    let lo: [__m256; 3] =
+        std::array::from_fn(|i| _mm256_min_ps(a.m[i], or_else(b.m[i], f32::INFINITY)));
+    let hi: [__m256; 3] = std::array::from_fn(|i| _mm256_max_ps(a.m[i], or_else(b.m[i], 0.0)));
+    let d2 = _mm256_min_ps(a.d2, or_else(b.d2, f32::INFINITY));
+    ScannedRays {
+        len,
+        lo: Vec3A::new(fold_min(lo[0]), fold_min(lo[1]), fold_min(lo[2])),
+        hi: Vec3A::new(fold_max(hi[0]), fold_max(hi[1]), fold_max(hi[2])),
+        shortest: fold_min(d2),
+    }
+}
+
+/// All ones in the lanes below `len` (at most 8).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lanes_below(len: usize) -> __m256 {
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(len as i32), lane))
+}
+
+/// Eight rays scanned for a packet ([`scan_eight`]), not yet folded.
+#[derive(Clone, Copy)]
+struct ScannedEight {
+    /// Bit `k`: ray `k` may join.
+    joins: u32,
+    /// `|d_a|` per axis, and `|d|²`, per lane.
+    m: [__m256; 3],
+    d2: __m256,
+}
+
+impl ScannedEight {
+    /// The scan of the first `len` rays (all of which join).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn fold(&self, len: usize) -> ScannedRays {
+        if len == 0 {
+            return ScannedRays::NONE;
+        }
+        // Over the rays that join: ranges and the smallest |d|², the others
+        // replaced by the neutral values.
+        let keep = lanes_below(len);
+        let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
+        let m = self.m;
+        ScannedRays {
+            len,
+            lo: Vec3A::new(
+                fold_min(or_else(m[0], f32::INFINITY)),
+                fold_min(or_else(m[1], f32::INFINITY)),
+                fold_min(or_else(m[2], f32::INFINITY)),
+            ),
+            hi: Vec3A::new(
+                fold_max(or_else(m[0], 0.0)),
+                fold_max(or_else(m[1], 0.0)),
+                fold_max(or_else(m[2], 0.0)),
+            ),
+            shortest: fold_min(or_else(self.d2, f32::INFINITY)),
+        }
+    }
+}
+
+/// The per-ray tests of `packet::scan_ray` for eight rays, in vectors.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn scan_eight(rays: &[Ray; 8], first: &Ray) -> ScannedEight {
     // The fields are gathered from the eight rays, 4-byte words apart.
     const STRIDE: i32 = (std::mem::size_of::<Ray>() / 4) as i32;
     const _: () = assert!(std::mem::size_of::<Ray>().is_multiple_of(4));
@@ -491,32 +587,24 @@ pub(crate) unsafe fn scan_for_packet(rays: &[Ray; 8], first: &Ray) -> ScannedRay
         _mm256_cmp_ps::<_CMP_GT_OQ>(smallest, _mm256_mul_ps(largest, _mm256_set1_ps(1e-6))),
         _mm256_cmp_ps::<_CMP_LT_OQ>(d2, _mm256_set1_ps(f32::INFINITY)),
     );
+    // The same level: for full-depth rays (the usual case) only `None`s.
     let mut level = 0u32;
-    for (k, r) in rays.iter().enumerate() {
-        level |= u32::from(r.level == first.level) << k;
+    match first.level {
+        None => {
+            for (k, r) in rays.iter().enumerate() {
+                level |= u32::from(r.level.is_none()) << k;
+            }
+        }
+        Some(l) => {
+            for (k, r) in rays.iter().enumerate() {
+                level |= u32::from(r.level == Some(l)) << k;
+            }
+        }
     }
-    let joins = _mm256_movemask_ps(_mm256_and_ps(same, regular)) as u32 & level;
-    let len = (!joins).trailing_zeros();
-    if len == 0 {
-        return ScannedRays::NONE;
-    }
-    // Over the rays that join: ranges and the smallest |d|², the others
-    // replaced by the neutral values.
-    let keep = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(len as i32), lane));
-    let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
-    ScannedRays {
-        len: len as usize,
-        lo: Vec3A::new(
-            fold_min(or_else(m[0], f32::INFINITY)),
-            fold_min(or_else(m[1], f32::INFINITY)),
-            fold_min(or_else(m[2], f32::INFINITY)),
-        ),
-        hi: Vec3A::new(
-            fold_max(or_else(m[0], 0.0)),
-            fold_max(or_else(m[1], 0.0)),
-            fold_max(or_else(m[2], 0.0)),
-        ),
-        shortest: fold_min(or_else(d2, f32::INFINITY)),
+    ScannedEight {
+        joins: _mm256_movemask_ps(_mm256_and_ps(same, regular)) as u32 & level,
+        m,
+        d2,
     }
 }
 
@@ -1177,8 +1265,8 @@ mod tests {
             return;
         }
         let mut rng = Rng(0x5ca7);
-        let mut lengths = [0usize; 9];
-        for _ in 0..40_000 {
+        let mut lengths = [0usize; 17];
+        for case in 0..40_000 {
             let first = Ray {
                 origin: [0, 1, 2].map(|_| rng.range(-3.0, 3.0)),
                 dir: [0, 1, 2].map(|_| rng.range(-1.0, 1.0)),
@@ -1188,10 +1276,10 @@ mod tests {
                 } else {
                     10.0
                 },
-                level: None,
+                level: (case % 5 == 0).then_some(7),
             };
-            let rare = 8 + rng.next() % 64;
-            let rays: [Ray; 8] = std::array::from_fn(|_| {
+            let rare = 16 + rng.next() % 128;
+            let rays: [Ray; 16] = std::array::from_fn(|_| {
                 let mut r = first;
                 r.dir = first.dir.map(|d| d + rng.range(-0.05, 0.05));
                 match rng.next() % rare {
@@ -1199,11 +1287,12 @@ mod tests {
                     1 => r.tmin = special(&mut rng, r.tmin),
                     2 => r.tmax = special(&mut rng, r.tmax),
                     3 => r.level = Some((rng.next() % 4) as u8),
-                    4 | 5 => {
+                    4 => r.level = None,
+                    5 | 6 => {
                         let a = (rng.next() % 3) as usize;
                         r.dir[a] = special(&mut rng, r.dir[a]);
                     }
-                    6 => {
+                    7 => {
                         let a = (rng.next() % 3) as usize;
                         r.dir[a] = -r.dir[a];
                     }
@@ -1211,21 +1300,23 @@ mod tests {
                 }
                 r
             });
-            // SAFETY: AVX2 was found above.
-            let vector = unsafe { scan_for_packet(&rays, &rays[0]) };
-            let mut scalar = ScannedRays::NONE;
-            for r in &rays {
-                let one = crate::packet::scan_ray(r, &rays[0]);
-                if one.len == 0 {
-                    break;
+            // The scan ray by ray, for the first `n` rays.
+            let scalar = |n: usize| {
+                let mut scalar = ScannedRays::NONE;
+                for r in &rays[..n] {
+                    let one = crate::packet::scan_ray(r, &rays[0]);
+                    if one.len == 0 {
+                        break;
+                    }
+                    scalar = ScannedRays {
+                        len: scalar.len + 1,
+                        lo: scalar.lo.min(one.lo),
+                        hi: scalar.hi.max(one.hi),
+                        shortest: scalar.shortest.min(one.shortest),
+                    };
                 }
-                scalar = ScannedRays {
-                    len: scalar.len + 1,
-                    lo: scalar.lo.min(one.lo),
-                    hi: scalar.hi.max(one.hi),
-                    shortest: scalar.shortest.min(one.shortest),
-                };
-            }
+                scalar
+            };
             let bits = |s: &ScannedRays| {
                 (
                     s.len,
@@ -1234,11 +1325,21 @@ mod tests {
                     s.shortest.to_bits(),
                 )
             };
-            assert_eq!(bits(&vector), bits(&scalar), "{rays:?}");
-            lengths[vector.len] += 1;
+            let eight: &[Ray; 8] = rays[..8].try_into().unwrap();
+            // SAFETY: AVX2 was found above.
+            let (vector, group) = unsafe {
+                (
+                    scan_for_packet(eight, &rays[0]),
+                    scan_group(&rays, &rays[0]),
+                )
+            };
+            assert_eq!(bits(&vector), bits(&scalar(8)), "{rays:?}");
+            assert_eq!(bits(&group), bits(&scalar(16)), "{rays:?}");
+            lengths[group.len] += 1;
         }
-        // Every length occurs, all eight joining most often.
-        assert!(lengths.iter().all(|&n| n > 100), "{lengths:?}");
+        // Every length occurs, all sixteen joining most often.
+        assert!(lengths.iter().all(|&n| n > 50), "{lengths:?}");
+        assert!(lengths[16] == *lengths.iter().max().unwrap(), "{lengths:?}");
     }
 
     /// `chain_tests` against `packet::chain_tests` (four rays to a vector)

@@ -702,7 +702,7 @@ impl<'a> Tracer<'a> {
         hits: &mut [Hit],
         grid: crate::grid::ImageGrid,
     ) -> Result<(), TraceError> {
-        const TILE_RAYS: usize = crate::grid::TILE * crate::grid::TILE;
+        const TILE_RAYS: usize = crate::grid::TILE_WIDTH * crate::grid::TILE_HEIGHT;
         let mut tile_rays = [rays[0]; TILE_RAYS];
         let mut tile_hits = [Hit::MISS; TILE_RAYS];
         for tile in crate::grid::tiles(grid) {

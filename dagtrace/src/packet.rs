@@ -48,7 +48,12 @@
 //!    its own front-to-back order, and the first voxel it finds in a brick
 //!    (read from the leaf mask, as by [`Tracer::trace`]) is its answer; a ray
 //!    that meets none in any listed cell misses. The children a node's rays
-//!    go on to are prefetched at the node's visit.
+//!    go on to are prefetched at the node's visit. The nodes just above the
+//!    bricks are met by few rays each (2.6 on average in a d12 camera frame),
+//!    so there each ray goes on alone ([`Tracer::visit_bottom`]): its chain
+//!    of children, then its bricks in its own order, each brick tested with
+//!    its outer plane parameters taken from the node's (the same numbers as
+//!    [`Tracer::brick`] computes).
 //!
 //! The answers are those of [`Tracer::trace`] except where a ray passes
 //! exactly through an edge or corner shared by cells of the beam level: there

@@ -41,7 +41,8 @@
 //!    of coherent rays (a shared origin, such as a camera's) are traced as
 //!    packets instead (module `packet`): one beam pass per packet finds the
 //!    coarse occupied cells any of its rays can meet, and each ray is traced
-//!    only through those, with the same steps.
+//!    only through those, with the same steps; an image given row by row is
+//!    traced tile by tile (module `grid`).
 //! 3. **Answer.** The first occupied cell found is reported with its entry
 //!    parameter and face, computed from the same plane parameters (the latest
 //!    slab entry of the moving axes, or `tmin` and face 0 when that is earlier),
@@ -592,8 +593,12 @@ impl<'a> Tracer<'a> {
     /// (64 MiB, `PACKET_MAX_DAG_BYTES`), runs of up to 64 consecutive rays with the
     /// same origin, bounds and level and directions in one octant (primary
     /// rays, best in tiles: [`crate::camera::CameraFrame::rays_in_tiles`]) are
-    /// traced as packets, sharing one walk of the coarse levels. Fails with
-    /// the first error met.
+    /// traced as packets, sharing one walk of the coarse levels. The rays of
+    /// an image row by row (a run of rays from one origin whose directions
+    /// step smoothly along rows of at least 16, module `grid`) are traced
+    /// tile by tile, each 16×4 tile as a packet. Where the processor has AVX2
+    /// all of this runs in code compiled for it (with BMI, POPCNT and LZCNT).
+    /// Fails with the first error met, in the order the rays are traced.
     pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
         let count = rays.len().min(hits.len());
         let (rays, hits) = (&rays[..count], &mut hits[..count]);

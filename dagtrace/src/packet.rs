@@ -753,8 +753,9 @@ impl Tracer<'_> {
         }
         let stop = level.min(self.leaf_level);
         // The usual case: the rays go down to the bricks, three node levels
-        // below the beam level's cells.
-        let bricks = stop != level && stop == beam_level + 3;
+        // below the beam level's cells (the leaf level).
+        let bricks = stop != level;
+        debug_assert!(!bricks || stop == beam_level + 3);
         let mut walks = [Walk::default(); PACKET_RAYS];
         // Rays still looking for their first hit, one bit per ray.
         let mut alive = 0u64;
@@ -902,7 +903,9 @@ impl Tracer<'_> {
     /// so each ray sees the nodes of its own traversal in its own order, and
     /// its first occupied cell is its answer: it is written to `hits` and its
     /// bit cleared from `alive`. `path` holds the nodes above the cell.
-    /// `Err` on a read out of range.
+    /// `Err` on a read out of range. For rays of a level of detail at or
+    /// above the leaf level, whose walk stops at a node level; rays down to
+    /// the bricks go through [`Tracer::walk_cell_to_bricks`].
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn walk_cell(
@@ -957,24 +960,6 @@ impl Tracer<'_> {
             let half = size * 0.5;
             let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
             let child_level = level + 1;
-            if child_level + 1 == stop && stop != ray_level {
-                // A node whose children are bricks: its rays go on one by
-                // one (few rays reach a node this small).
-                self.visit_bottom(
-                    child_level,
-                    pointer,
-                    child_pos,
-                    half,
-                    child_rays,
-                    walks,
-                    origin,
-                    neg,
-                    (path, &frames[..=top]),
-                    alive,
-                    hits,
-                )?;
-                continue;
-            }
             if child_level < stop {
                 top += 1;
                 self.visit_subtree_node(
@@ -993,24 +978,12 @@ impl Tracer<'_> {
                 size = half;
                 continue;
             }
-            // The stop level: the cell itself, or its brick's first voxel.
+            // The stop level, the rays' own: the cell is the answer.
             let mut m = child_rays;
             while m != 0 {
                 let r = m.trailing_zeros() as usize & (PACKET_RAYS - 1);
                 m &= m - 1;
-                let found = if stop == ray_level {
-                    Some((child_pos, child_level))
-                } else {
-                    let mut fault = None;
-                    let found = self.brick(&walks[r].q, pointer, child_pos, &mut fault);
-                    if fault.is_some() {
-                        return Err(());
-                    }
-                    found
-                };
-                let Some((cell_pos, cell_level)) = found else {
-                    continue;
-                };
+                let (cell_pos, cell_level) = (child_pos, child_level);
                 // The path to the cell matters only for its attribute index.
                 let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
                 if self.index_kind() {

@@ -67,8 +67,10 @@ mod state {
     pub const MISS: i32 = 5;
 }
 
-/// Whether this processor runs the vector traversal (the result is cached by
-/// the standard library).
+/// Whether this processor runs the vector traversal: AVX2, and the
+/// instructions every processor with AVX2 also has that the batch path is
+/// compiled with (`#[target_feature]`: BMI1/2, POPCNT, LZCNT, FMA; no fused
+/// arithmetic is written, so FMA only allows the encoding). Looked up once.
 #[inline]
 pub(crate) fn available() -> bool {
     use std::sync::atomic::{AtomicU8, Ordering};

@@ -983,27 +983,8 @@ impl Tracer<'_> {
             while m != 0 {
                 let r = m.trailing_zeros() as usize & (PACKET_RAYS - 1);
                 m &= m - 1;
-                let (cell_pos, cell_level) = (child_pos, child_level);
-                // The path to the cell matters only for its attribute index.
-                let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
-                if self.index_kind() {
-                    stack[..path.len()].copy_from_slice(path);
-                    for (k, f) in frames[..=top].iter().enumerate() {
-                        stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = Frame {
-                            word: f.word,
-                            mask: f.mask,
-                            ..Frame::default()
-                        };
-                    }
-                }
-                hits[r] = self
-                    .finish(
-                        &walks[r].ray(),
-                        Some((cell_pos, cell_level, pointer)),
-                        &stack,
-                        None,
-                    )
-                    .map_err(|_| ())?;
+                let cell = (child_pos, child_level, pointer);
+                hits[r] = self.packet_hit(&walks[r], cell, path, &frames[..=top], None)?;
                 *alive &= !(1 << r);
             }
         }
@@ -1095,29 +1076,13 @@ impl Tracer<'_> {
                     continue;
                 };
                 let cell = (cell_pos, cell_level, pointer);
-                hits[r] = if self.index_kind() {
-                    // The path to the cell, for its attribute index.
-                    let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
-                    let (path, frames) = above;
-                    stack[..path.len()].copy_from_slice(path);
-                    let node = Frame {
-                        word,
-                        mask,
-                        ..Frame::default()
-                    };
-                    let walked = frames.iter().map(|f| Frame {
-                        word: f.word,
-                        mask: f.mask,
-                        ..Frame::default()
-                    });
-                    for (k, f) in walked.chain([node]).enumerate() {
-                        stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = f;
-                    }
-                    self.walk_hit(&walks[r], cell, Some(&stack))
-                } else {
-                    self.walk_hit(&walks[r], cell, None)
-                }
-                .map_err(|_| ())?;
+                let node = Frame {
+                    word,
+                    mask,
+                    ..Frame::default()
+                };
+                let (path, frames) = above;
+                hits[r] = self.packet_hit(&walks[r], cell, path, frames, Some(node))?;
                 *alive &= !(1 << r);
                 break;
             }
@@ -1210,6 +1175,35 @@ impl Tracer<'_> {
             }
         }
         Ok(())
+    }
+
+    /// The hit of the packet ray `walk` that found `cell`, with its attribute
+    /// index where hits carry one: the path to the cell is the nodes above
+    /// the beam cell (`path`), the subtree walk's `frames` and, below them,
+    /// `node`.
+    #[inline(always)]
+    fn packet_hit(
+        &self,
+        walk: &Walk,
+        cell: crate::tracer::Cell,
+        path: &[Frame],
+        frames: &[SubtreeFrame],
+        node: Option<Frame>,
+    ) -> Result<Hit, ()> {
+        if !self.index_kind() {
+            return self.walk_hit(walk, cell, None).map_err(|_| ());
+        }
+        let mut stack: Stack = [Frame::default(); LEVEL_SLOTS];
+        stack[..path.len()].copy_from_slice(path);
+        let walked = frames.iter().map(|f| Frame {
+            word: f.word,
+            mask: f.mask,
+            ..Frame::default()
+        });
+        for (k, f) in walked.chain(node).enumerate() {
+            stack[(path.len() + k) & (LEVEL_SLOTS - 1)] = f;
+        }
+        self.walk_hit(walk, cell, Some(&stack)).map_err(|_| ())
     }
 
     /// Where the nodes of `level` are read, for prefetching, and their record

@@ -67,7 +67,7 @@ use glam::{Vec3A, Vec4};
 use crate::tables::FIRST;
 use crate::tracer::{
     CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, max, min,
-    prefetch, prefetch_address,
+    prefetch, prefetch_range,
 };
 use dagfmt::batch::{Hit, Ray};
 
@@ -569,11 +569,7 @@ impl Tracer<'_> {
         // hides the memory latency; the hardware prefetchers do not run that
         // far ahead of this stream).
         if let Some(next) = rays.get(PACKET_RAYS..(2 * PACKET_RAYS).min(rays.len())) {
-            let bytes = std::mem::size_of_val(next);
-            let start = next.as_ptr().cast::<u8>();
-            for at in (0..bytes).step_by(64) {
-                prefetch_address(start.wrapping_add(at));
-            }
+            prefetch_range(next.as_ptr().cast(), std::mem::size_of_val(next));
         }
         #[cfg(target_arch = "x86_64")]
         let vectors = crate::simd::available();

@@ -710,8 +710,22 @@ impl<'a> Tracer<'a> {
         const TILE_RAYS: usize = crate::grid::TILE_WIDTH * crate::grid::TILE_HEIGHT;
         let mut tile_rays = [rays[0]; TILE_RAYS];
         let mut tile_hits = [Hit::MISS; TILE_RAYS];
-        for tile in crate::grid::tiles(grid) {
+        let tiles = crate::grid::tiles(grid);
+        let mut ahead = tiles.clone();
+        ahead.next();
+        for tile in tiles {
             let runs = &tile.runs[..tile.len];
+            // The next tile's rays and hits, in rows far apart, are read and
+            // written soon: start their reads now (the hardware prefetchers
+            // do not follow this many streams).
+            if let Some(next) = ahead.next() {
+                for &(i, len) in &next.runs[..next.len] {
+                    let rays = rays.get(i..i + len).unwrap_or_default();
+                    let hits = hits.get(i..i + len).unwrap_or_default();
+                    prefetch_range(rays.as_ptr().cast(), std::mem::size_of_val(rays));
+                    prefetch_range(hits.as_ptr().cast(), std::mem::size_of_val(hits));
+                }
+            }
             // Runs of 4 (all but those at the edges) copied as arrays: no
             // call of `memcpy` for each.
             let mut n = 0;
@@ -1675,6 +1689,19 @@ pub(crate) fn prefetch_address(at: *const u8) {
     };
     #[cfg(not(target_arch = "x86_64"))]
     let _ = at;
+}
+
+/// Hints the processor to load the cache lines of the `bytes` bytes from
+/// `start` (see [`prefetch_address`]).
+#[inline(always)]
+pub(crate) fn prefetch_range(start: *const u8, bytes: usize) {
+    let mut at = 0;
+    while at < bytes {
+        prefetch_address(start.wrapping_add(at));
+        at += 64;
+    }
+    // The last line, where the range does not start on a line.
+    prefetch_address(start.wrapping_add(bytes.saturating_sub(1)));
 }
 
 /// Bit `c` set when byte `c` (sub-brick `c`) of a leaf mask is non-zero.

@@ -46,7 +46,11 @@ pub const NO_INDEX: u64 = u64::MAX;
 pub const MAX_FACE: u8 = 6;
 
 /// A ray segment `origin + t * dir`, `t` in `[tmin, tmax]`, in world space.
+///
+/// `#[repr(C)]`: the fields lie in this order, so vector code may read a
+/// ray's first 32 bytes as its origin, direction, `tmin` and `tmax` words.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
 pub struct Ray {
     /// Origin.
     pub origin: [f32; 3],

@@ -593,13 +593,15 @@ unsafe fn scan_eight(rays: &[Ray; 8], first: &Ray) -> ScannedEight {
     }
 }
 
-/// Whether a [`Ray`]'s first eight 4-byte words are its origin, direction,
-/// `tmin` and `tmax`, in this order (the layout [`ray_words`] reads fast).
-const RAY_WORDS_IN_ORDER: bool = std::mem::offset_of!(Ray, origin) == 0
-    && std::mem::offset_of!(Ray, dir) == 12
-    && std::mem::offset_of!(Ray, tmin) == 24
-    && std::mem::offset_of!(Ray, tmax) == 28
-    && std::mem::size_of::<Ray>() >= 32;
+// A `Ray` (`#[repr(C)]`) starts with its origin, direction, `tmin` and
+// `tmax`, eight 4-byte words: the layout `ray_words` reads.
+const _: () = assert!(
+    std::mem::offset_of!(Ray, origin) == 0
+        && std::mem::offset_of!(Ray, dir) == 12
+        && std::mem::offset_of!(Ray, tmin) == 24
+        && std::mem::offset_of!(Ray, tmax) == 28
+        && std::mem::size_of::<Ray>() >= 32
+);
 
 /// The origin (3), direction (3), `tmin` and `tmax` words of eight rays,
 /// one vector per field, lane `k` from `rays[k]`. Eight loads of a ray's
@@ -613,32 +615,8 @@ const RAY_WORDS_IN_ORDER: bool = std::mem::offset_of!(Ray, origin) == 0
 #[inline]
 #[target_feature(enable = "avx2")]
 unsafe fn ray_words(rays: &[Ray; 8]) -> [__m256i; 8] {
-    const _: () = assert!(std::mem::size_of::<Ray>().is_multiple_of(4));
-    if !RAY_WORDS_IN_ORDER {
-        // Another layout: gather each field.
-        const STRIDE: i32 = (std::mem::size_of::<Ray>() / 4) as i32;
-        let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-        let start = _mm256_mullo_epi32(lane, _mm256_set1_epi32(STRIDE));
-        let base = rays.as_ptr().cast::<i32>();
-        let (origin, dir) = (
-            std::mem::offset_of!(Ray, origin),
-            std::mem::offset_of!(Ray, dir),
-        );
-        let offsets = [
-            origin,
-            origin + 4,
-            origin + 8,
-            dir,
-            dir + 4,
-            dir + 8,
-            std::mem::offset_of!(Ray, tmin),
-            std::mem::offset_of!(Ray, tmax),
-        ];
-        // SAFETY: lane k reads the 4-byte field at `offset` of `rays[k]`
-        // (the offset of an `f32` field): inside the array.
-        return offsets.map(|offset| unsafe { gather_words(base, start, offset) });
-    }
-    // SAFETY: the first 32 bytes of each ray lie inside it (checked above).
+    // SAFETY: the first 32 bytes of each ray lie inside it (the assertion
+    // on `Ray`'s layout above).
     let row = |k: usize| unsafe {
         _mm256_castsi256_ps(_mm256_loadu_si256(
             std::ptr::from_ref(&rays[k]).cast::<__m256i>(),
@@ -676,20 +654,6 @@ unsafe fn ray_words(rays: &[Ray; 8]) -> [__m256i; 8] {
         _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
     ]
     .map(|v| _mm256_castps_si256(v))
-}
-
-/// The 32-bit words at byte `offset` (a multiple of 4) past the 32-bit
-/// word offsets `start` from `base`.
-///
-/// # Safety
-///
-/// The processor must have AVX2, and every word read must be readable.
-#[inline]
-#[target_feature(enable = "avx2")]
-unsafe fn gather_words(base: *const i32, start: __m256i, offset: usize) -> __m256i {
-    let index = _mm256_add_epi32(start, _mm256_set1_epi32((offset / 4) as i32));
-    // SAFETY: the caller's.
-    unsafe { _mm256_i32gather_epi32::<4>(base, index) }
 }
 
 /// The smallest of the eight lanes (none NaN).

@@ -573,7 +573,7 @@ impl Tracer<'_> {
         // hides the memory latency; the hardware prefetchers do not run that
         // far ahead of this stream).
         if let Some(next) = rays.get(PACKET_RAYS..(2 * PACKET_RAYS).min(rays.len())) {
-            prefetch_range(next.as_ptr().cast(), std::mem::size_of_val(next));
+            prefetch_range(next);
         }
         #[cfg(target_arch = "x86_64")]
         let vectors = crate::simd::available();

@@ -720,10 +720,8 @@ impl<'a> Tracer<'a> {
             // do not follow this many streams).
             if let Some(next) = ahead.next() {
                 for &(i, len) in &next.runs[..next.len] {
-                    let rays = rays.get(i..i + len).unwrap_or_default();
-                    let hits = hits.get(i..i + len).unwrap_or_default();
-                    prefetch_range(rays.as_ptr().cast(), std::mem::size_of_val(rays));
-                    prefetch_range(hits.as_ptr().cast(), std::mem::size_of_val(hits));
+                    prefetch_range(rays.get(i..i + len).unwrap_or_default());
+                    prefetch_range(hits.get(i..i + len).unwrap_or_default());
                 }
             }
             // Runs of 4 (all but those at the edges) copied as arrays: no
@@ -1691,17 +1689,21 @@ pub(crate) fn prefetch_address(at: *const u8) {
     let _ = at;
 }
 
-/// Hints the processor to load the cache lines of the `bytes` bytes from
-/// `start` (see [`prefetch_address`]).
+/// Hints the processor to load the cache lines that hold `items` (see
+/// [`prefetch_address`]).
 #[inline(always)]
-pub(crate) fn prefetch_range(start: *const u8, bytes: usize) {
+pub(crate) fn prefetch_range<T>(items: &[T]) {
+    let (start, bytes) = (items.as_ptr().cast::<u8>(), std::mem::size_of_val(items));
+    if bytes == 0 {
+        return;
+    }
     let mut at = 0;
     while at < bytes {
         prefetch_address(start.wrapping_add(at));
         at += 64;
     }
-    // The last line, where the range does not start on a line.
-    prefetch_address(start.wrapping_add(bytes.saturating_sub(1)));
+    // The last line, where the items do not start on a line.
+    prefetch_address(start.wrapping_add(bytes - 1));
 }
 
 /// Bit `c` set when byte `c` (sub-brick `c`) of a leaf mask is non-zero.

@@ -82,6 +82,8 @@ const GROUP_RAYS: usize = 16;
 
 /// Groups in a packet.
 const GROUPS: usize = PACKET_RAYS / GROUP_RAYS;
+// `simd::groups_meet` tests the groups' beams four to a vector.
+const _: () = assert!(GROUPS == 4);
 
 /// The bits of the first group in a mask of rays.
 const GROUP_MASK: u64 = (1 << GROUP_RAYS) - 1;
@@ -187,6 +189,29 @@ impl Beam {
     /// same answers).
     #[inline(always)]
     fn children_met(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
+        #[cfg(target_arch = "x86_64")]
+        if crate::simd::available() {
+            // SAFETY: `simd::available` found AVX2.
+            let met = unsafe {
+                crate::simd::beam_children_met(
+                    self.origin,
+                    self.inv_lo,
+                    self.inv_hi,
+                    self.tmin,
+                    self.tmax,
+                    self.margin,
+                    pos,
+                    size * 0.5,
+                )
+            };
+            return unmirror(met, neg) & mask;
+        }
+        self.children_met_scalar(mask, pos, size, neg)
+    }
+
+    /// [`Beam::children_met`] without vectors (processors without AVX2).
+    #[inline(always)]
+    fn children_met_scalar(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
         let half = size * 0.5;
         let mut near = [[0f64; 2]; 3];
         let mut far = [[0f64; 2]; 3];
@@ -208,19 +233,45 @@ impl Beam {
         // No NaN here (finite beams, finite planes): plain comparisons.
         let max = |a: f64, b: f64| if a > b { a } else { b };
         let min = |a: f64, b: f64| if a < b { a } else { b };
-        let mut met = 0u8;
-        let mut children = mask;
-        while children != 0 {
-            let c = children.trailing_zeros() as usize;
-            children &= children - 1;
-            let m = c ^ neg;
-            let (x, y, z) = (m & 1, m >> 1 & 1, m >> 2 & 1);
-            let enter = max(max(self.tmin, near[0][x]), max(near[1][y], near[2][z]));
-            let exit = min(min(self.tmax, far[0][x]), min(far[1][y], far[2][z]));
-            met |= u8::from(enter <= exit) << c;
+        // All eight children at once, indexed by mirrored child `m` (bit
+        // `a` set for the upper half on axis `a`), four to a row so that the
+        // comparisons become vector operations: row `z` holds `m = 4z..4z+4`.
+        let mut met_mirrored = 0u32;
+        for z in 0..2 {
+            let mut met_row = 0u32;
+            for k in 0..4 {
+                let enter = max(
+                    max(self.tmin, near[0][k & 1]),
+                    max(near[1][k >> 1], near[2][z]),
+                );
+                let exit = min(
+                    min(self.tmax, far[0][k & 1]),
+                    min(far[1][k >> 1], far[2][z]),
+                );
+                met_row |= u32::from(enter <= exit) << k;
+            }
+            met_mirrored |= met_row << (4 * z);
         }
-        met
+        unmirror(met_mirrored, neg) & mask
     }
+}
+
+/// Bits by child index from bits by mirrored child index (child `c` is
+/// mirrored child `c ^ neg`): the bits of each pair, pair of pairs or nibble
+/// swapped along the mirrored axes.
+#[inline(always)]
+fn unmirror(bits: u32, neg: usize) -> u8 {
+    let mut b = bits;
+    if neg & 1 != 0 {
+        b = (b & 0x55) << 1 | (b >> 1) & 0x55;
+    }
+    if neg & 2 != 0 {
+        b = (b & 0x33) << 2 | (b >> 2) & 0x33;
+    }
+    if neg & 4 != 0 {
+        b = (b & 0x0f) << 4 | (b >> 4) & 0x0f;
+    }
+    b as u8
 }
 
 /// One node on the beam walk's path.
@@ -736,6 +787,17 @@ impl Tracer<'_> {
         if self.beams(&rays[0], shape, Some(&mut groups)).is_none() {
             return false;
         }
+        // The groups' inverse directions by axis, for the vector test of all
+        // groups at once (the rest of their beams is the packet's).
+        #[cfg(target_arch = "x86_64")]
+        let group_lanes = crate::simd::available().then(|| {
+            let by_axis = |f: fn(&Beam) -> [f64; 3]| -> [[f64; GROUPS]; 3] {
+                std::array::from_fn(|a| std::array::from_fn(|g| f(&groups[g])[a]))
+            };
+            (by_axis(|b| b.inv_lo), by_axis(|b| b.inv_hi))
+        });
+        #[cfg(not(target_arch = "x86_64"))]
+        let group_lanes: Option<()> = None;
         // The set-up of every ray, as `Tracer::setup` does it, with what the
         // rays share done once. Anything it would treat specially sends the
         // packet back to the ray-by-ray path.
@@ -812,11 +874,37 @@ impl Tracer<'_> {
                 // of a packet miss most of its cells, and one group's beam
                 // test saves the slab tests of its rays.
                 let pos = cell.pos.to_array().map(f64::from);
+                let size = f64::from(beam_size);
                 let mut rays = 0u64;
-                for (g, group) in groups.iter().enumerate() {
-                    let members = alive & (GROUP_MASK << (g * GROUP_RAYS));
-                    if members != 0 && group.meets(pos, f64::from(beam_size)) {
-                        rays |= members;
+                #[cfg(target_arch = "x86_64")]
+                if let Some((inv_lo, inv_hi)) = &group_lanes {
+                    // SAFETY: `group_lanes` is only made where
+                    // `simd::available` found AVX2.
+                    let met = unsafe {
+                        crate::simd::groups_meet(
+                            beam.origin,
+                            inv_lo,
+                            inv_hi,
+                            beam.tmin,
+                            beam.tmax,
+                            beam.margin,
+                            pos,
+                            size,
+                        )
+                    };
+                    for g in 0..GROUPS {
+                        if met >> g & 1 != 0 {
+                            rays |= GROUP_MASK << (g * GROUP_RAYS);
+                        }
+                    }
+                    rays &= alive;
+                }
+                if group_lanes.is_none() {
+                    for (g, group) in groups.iter().enumerate() {
+                        let members = alive & (GROUP_MASK << (g * GROUP_RAYS));
+                        if members != 0 && group.meets(pos, size) {
+                            rays |= members;
+                        }
                     }
                 }
                 if rays == 0 {
@@ -1809,6 +1897,34 @@ mod tests {
             let mask = rng.next() as u8;
             let neg = (rng.next() % 8) as usize;
             let met = beam.children_met(mask, pos, size, neg);
+            assert_eq!(met, beam.children_met_scalar(mask, pos, size, neg));
+            // The packet's four group tests at once, on the same cube.
+            #[cfg(target_arch = "x86_64")]
+            if crate::simd::available() {
+                let groups: [Beam; GROUPS] = std::array::from_fn(|g| Beam {
+                    inv_hi: beam.inv_hi.map(|v| v * (1.0 + 0.05 * g as f64)),
+                    ..beam
+                });
+                let lanes = |f: fn(&Beam) -> [f64; 3]| -> [[f64; GROUPS]; 3] {
+                    std::array::from_fn(|a| std::array::from_fn(|g| f(&groups[g])[a]))
+                };
+                // SAFETY: checked.
+                let met = unsafe {
+                    crate::simd::groups_meet(
+                        beam.origin,
+                        &lanes(|b| b.inv_lo),
+                        &lanes(|b| b.inv_hi),
+                        beam.tmin,
+                        beam.tmax,
+                        beam.margin,
+                        pos,
+                        size,
+                    )
+                };
+                for (g, group) in groups.iter().enumerate() {
+                    assert_eq!(met >> g & 1 == 1, group.meets(pos, size), "group {g}");
+                }
+            }
             for c in 0..8 {
                 let m = c ^ neg;
                 let half = size * 0.5;

@@ -674,6 +674,116 @@ fn fold_max(v: __m256) -> f32 {
     _mm_cvtss_f32(_mm_max_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
 }
 
+/// `packet::Beam::children_met` before its mirroring: bit `m` set when some
+/// line of the beam (origin, per-axis `inv_lo`/`inv_hi`, `[tmin, tmax]`,
+/// cells enlarged by `margin`) may meet the mirrored child `m` of the node of
+/// edge `2 * half` at `pos`. The same `f64` operations as the scalar form,
+/// four children to a vector (so the same answers).
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[inline]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+pub(crate) unsafe fn beam_children_met(
+    origin: [f64; 3],
+    inv_lo: [f64; 3],
+    inv_hi: [f64; 3],
+    tmin: f64,
+    tmax: f64,
+    margin: f64,
+    pos: [f64; 3],
+    half: f64,
+) -> u32 {
+    let v = |a: [f64; 3]| _mm256_setr_pd(a[0], a[1], a[2], 0.0);
+    let (origin, inv_lo, inv_hi, pos) = (v(origin), v(inv_lo), v(inv_hi), v(pos));
+    let (margin, half) = (_mm256_set1_pd(margin), _mm256_set1_pd(half));
+    let mid = _mm256_add_pd(pos, half);
+    let lo0 = _mm256_sub_pd(_mm256_sub_pd(pos, margin), origin);
+    let lo1 = _mm256_sub_pd(_mm256_sub_pd(mid, margin), origin);
+    let hi0 = _mm256_sub_pd(_mm256_add_pd(mid, margin), origin);
+    let hi1 = _mm256_sub_pd(_mm256_add_pd(_mm256_add_pd(mid, half), margin), origin);
+    let zero = _mm256_setzero_pd();
+    // `Beam::near` and `Beam::far`: the inverse direction by the plane's side.
+    let near = |lo: __m256d| {
+        let ahead = _mm256_cmp_pd::<_CMP_GE_OQ>(lo, zero);
+        _mm256_mul_pd(lo, _mm256_blendv_pd(inv_hi, inv_lo, ahead))
+    };
+    let far = |hi: __m256d| {
+        let ahead = _mm256_cmp_pd::<_CMP_GE_OQ>(hi, zero);
+        _mm256_mul_pd(hi, _mm256_blendv_pd(inv_lo, inv_hi, ahead))
+    };
+    let (n0, n1, f0, f1) = (near(lo0), near(lo1), far(hi0), far(hi1));
+    // Per row of four children (z fixed): lane k has x = k & 1, y = k >> 1.
+    // `unpacklo` gives [a.x, b.x, a.z, b.z], `unpackhi` [a.y, b.y, .., ..].
+    let (nxz, ny) = (_mm256_unpacklo_pd(n0, n1), _mm256_unpackhi_pd(n0, n1));
+    let (fxz, fy) = (_mm256_unpacklo_pd(f0, f1), _mm256_unpackhi_pd(f0, f1));
+    let nx = _mm256_permute4x64_pd::<0b01_00_01_00>(nxz);
+    let fx = _mm256_permute4x64_pd::<0b01_00_01_00>(fxz);
+    let ny = _mm256_permute4x64_pd::<0b01_01_00_00>(ny);
+    let fy = _mm256_permute4x64_pd::<0b01_01_00_00>(fy);
+    let (tmin, tmax) = (_mm256_set1_pd(tmin), _mm256_set1_pd(tmax));
+    // `max(a, b)` is `a > b ? a : b` and `min(a, b)` is `a < b ? a : b`,
+    // like the scalar closures (no NaN here).
+    let enter_xy = _mm256_max_pd(tmin, nx);
+    let exit_xy = _mm256_min_pd(tmax, fx);
+    let row = |nz: __m256d, fz: __m256d| {
+        let enter = _mm256_max_pd(enter_xy, _mm256_max_pd(ny, nz));
+        let exit = _mm256_min_pd(exit_xy, _mm256_min_pd(fy, fz));
+        _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32
+    };
+    let low = row(
+        _mm256_permute4x64_pd::<0b10_10_10_10>(nxz),
+        _mm256_permute4x64_pd::<0b10_10_10_10>(fxz),
+    );
+    let high = row(
+        _mm256_permute4x64_pd::<0b11_11_11_11>(nxz),
+        _mm256_permute4x64_pd::<0b11_11_11_11>(fxz),
+    );
+    low | high << 4
+}
+
+/// `packet::Beam::meets` for four beams at once that differ only in their
+/// inverse directions (a packet's groups: `inv_lo[a][g]`, `inv_hi[a][g]` for
+/// group `g`), against the cube of edge `size` at `pos`: bit `g` set when
+/// beam `g` may meet it. The same `f64` operations, and like `f64::max` and
+/// `f64::min` a NaN plane parameter is passed over.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[inline]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+pub(crate) unsafe fn groups_meet(
+    origin: [f64; 3],
+    inv_lo: &[[f64; 4]; 3],
+    inv_hi: &[[f64; 4]; 3],
+    tmin: f64,
+    tmax: f64,
+    margin: f64,
+    pos: [f64; 3],
+    size: f64,
+) -> u32 {
+    let load = |v: &[f64; 4]| _mm256_setr_pd(v[0], v[1], v[2], v[3]);
+    let mut enter = _mm256_set1_pd(tmin);
+    let mut exit = _mm256_set1_pd(tmax);
+    for a in 0..3 {
+        let lo = pos[a] - margin - origin[a];
+        let hi = pos[a] + size + margin - origin[a];
+        let near = if lo >= 0.0 { &inv_lo[a] } else { &inv_hi[a] };
+        let far = if hi >= 0.0 { &inv_hi[a] } else { &inv_lo[a] };
+        let near = _mm256_mul_pd(_mm256_set1_pd(lo), load(near));
+        let far = _mm256_mul_pd(_mm256_set1_pd(hi), load(far));
+        // `maxpd(a, b)` is `a > b ? a : b`: the second operand when either
+        // is NaN, so the running bound stays, as with `f64::max`.
+        enter = _mm256_max_pd(near, enter);
+        exit = _mm256_min_pd(far, exit);
+    }
+    _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32
+}
+
 /// `packet::chain_tests` eight rays at a time, with the same `f32`
 /// operations (so the same tests bit for bit).
 ///

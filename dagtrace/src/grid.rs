@@ -133,11 +133,11 @@ const BLOCK: usize = 4;
 /// Runs of [`BLOCK`] rays in a tile.
 const TILE_RUNS: usize = TILE_WIDTH * TILE_HEIGHT / BLOCK;
 
-/// The 16×4 tiles of `grid`, four rows at a time and left to right, each as
-/// runs of consecutive rays (first index, length): the tile's 4×4 blocks
-/// left to right, each block row by row, so that every 16 rays of a full
-/// tile are one block (a group of its packet). Tiles at the right and bottom
-/// edges hold the rays that exist.
+/// The 16×4 tiles of `grid`, four rows at a time and left to right. Each
+/// tile's rays are [`Tile::runs`]: the tile's 4×4 blocks left to right, each
+/// block row by row, so that every 16 rays of a full tile are one block (a
+/// group of its packet). Tiles at the right and bottom edges hold the rays
+/// that exist.
 pub(crate) fn tiles(grid: ImageGrid) -> Tiles {
     Tiles { grid, x0: 0, y0: 0 }
 }
@@ -150,7 +150,16 @@ pub(crate) struct Tiles {
     y0: usize,
 }
 
-/// One tile of [`tiles`]: `runs[..len]`.
+/// One tile of [`tiles`]: its top left pixel.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Tile {
+    grid: ImageGrid,
+    x0: usize,
+    y0: usize,
+}
+
+/// The rays of a tile as runs of consecutive rays (first index, length):
+/// `runs[..len]`.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct TileRuns {
     pub(crate) runs: [(usize, usize); TILE_RUNS],
@@ -165,11 +174,40 @@ impl TileRuns {
     };
 }
 
+impl Tile {
+    /// Whether the tile has all its 16×4 rays (not cut by an edge).
+    #[inline(always)]
+    pub(crate) fn is_full(&self) -> bool {
+        self.x0 + TILE_WIDTH <= self.grid.width && self.y0 + TILE_HEIGHT <= self.grid.rows
+    }
+
+    /// The first ray of row `y` (of 4) of block `b` (of 4, left to right)
+    /// of a full tile: the block's rows are `BLOCK` rays from there.
+    #[inline(always)]
+    pub(crate) fn block_row(&self, b: usize, y: usize) -> usize {
+        (self.y0 + y) * self.grid.width + self.x0 + b * BLOCK
+    }
+
+    /// The tile's rays, block by block, each block row by row.
+    pub(crate) fn runs(&self) -> TileRuns {
+        let (grid, x0, y0) = (self.grid, self.x0, self.y0);
+        let mut tile = TileRuns::EMPTY;
+        for bx in (x0..(x0 + TILE_WIDTH).min(grid.width)).step_by(BLOCK) {
+            let len = BLOCK.min(grid.width - bx);
+            for y in y0..(y0 + TILE_HEIGHT).min(grid.rows) {
+                tile.runs[tile.len & (TILE_RUNS - 1)] = (y * grid.width + bx, len);
+                tile.len += 1;
+            }
+        }
+        tile
+    }
+}
+
 impl Iterator for Tiles {
-    type Item = TileRuns;
+    type Item = Tile;
 
     #[inline(always)]
-    fn next(&mut self) -> Option<TileRuns> {
+    fn next(&mut self) -> Option<Tile> {
         let grid = self.grid;
         if self.y0 >= grid.rows || grid.width == 0 {
             return None;
@@ -180,15 +218,7 @@ impl Iterator for Tiles {
             self.x0 = 0;
             self.y0 += TILE_HEIGHT;
         }
-        let mut tile = TileRuns::EMPTY;
-        for bx in (x0..(x0 + TILE_WIDTH).min(grid.width)).step_by(BLOCK) {
-            let len = BLOCK.min(grid.width - bx);
-            for y in y0..(y0 + TILE_HEIGHT).min(grid.rows) {
-                tile.runs[tile.len & (TILE_RUNS - 1)] = (y * grid.width + bx, len);
-                tile.len += 1;
-            }
-        }
-        Some(tile)
+        Some(Tile { grid, x0, y0 })
     }
 }
 
@@ -273,7 +303,8 @@ mod tests {
             let mut seen = vec![0u32; w * h];
             let mut tiles_seen = 0;
             for tile in tiles(grid) {
-                let runs = &tile.runs[..tile.len];
+                let tile_runs = tile.runs();
+                let runs = &tile_runs.runs[..tile_runs.len];
                 tiles_seen += 1;
                 let rays: Vec<usize> = runs.iter().flat_map(|&(i, n)| i..i + n).collect();
                 for &i in &rays {
@@ -283,7 +314,14 @@ mod tests {
                 // are a 4×4 block.
                 let (x0, y0) = (rays[0] % w, rays[0] / w);
                 assert!(rays.iter().all(|&i| i % w - x0 < 16 && i / w - y0 < 4));
-                if rays.len() == 64 {
+                assert_eq!(tile.is_full(), rays.len() == 64);
+                if tile.is_full() {
+                    // The blocks' rows as `block_row` gives them.
+                    let rows: Vec<usize> = (0..4)
+                        .flat_map(|b| (0..4).flat_map(move |y| (0..4).map(move |k| (b, y, k))))
+                        .map(|(b, y, k)| tile.block_row(b, y) + k)
+                        .collect();
+                    assert_eq!(rows, rays);
                     for block in rays.chunks(16) {
                         let (bx, by) = (block[0] % w, block[0] / w);
                         assert!(block.iter().all(|&i| i % w - bx < 4 && i / w - by < 4));

@@ -714,50 +714,80 @@ impl<'a> Tracer<'a> {
         let mut ahead = tiles.clone();
         ahead.next();
         for tile in tiles {
-            let runs = &tile.runs[..tile.len];
             // The next tile's rays and hits, in rows far apart, are read and
             // written soon: start their reads now (the hardware prefetchers
             // do not follow this many streams).
             if let Some(next) = ahead.next() {
-                for &(i, len) in &next.runs[..next.len] {
-                    prefetch_range(rays.get(i..i + len).unwrap_or_default());
-                    prefetch_range(hits.get(i..i + len).unwrap_or_default());
+                if next.is_full() {
+                    for b in 0..4 {
+                        for y in 0..4 {
+                            let i = next.block_row(b, y);
+                            prefetch_range(rays.get(i..i + 4).unwrap_or_default());
+                            prefetch_range(hits.get(i..i + 4).unwrap_or_default());
+                        }
+                    }
+                } else {
+                    let next = next.runs();
+                    for &(i, len) in &next.runs[..next.len] {
+                        prefetch_range(rays.get(i..i + len).unwrap_or_default());
+                        prefetch_range(hits.get(i..i + len).unwrap_or_default());
+                    }
                 }
             }
-            // Runs of 4 (all but those at the edges) copied as arrays: no
-            // call of `memcpy` for each.
+            if tile.is_full() {
+                // The usual tile: its sixteen 4-ray runs copied as arrays,
+                // from the positions of its blocks' rows.
+                for b in 0..4 {
+                    for y in 0..4 {
+                        let i = tile.block_row(b, y);
+                        let n = 16 * b + 4 * y;
+                        let from: &[Ray; 4] = rays[i..i + 4].try_into().expect("four");
+                        let to: &mut [Ray; 4] =
+                            (&mut tile_rays[n..n + 4]).try_into().expect("four");
+                        *to = *from;
+                    }
+                }
+                self.trace_tile(&tile_rays, &mut tile_hits)?;
+                for b in 0..4 {
+                    for y in 0..4 {
+                        let i = tile.block_row(b, y);
+                        let n = 16 * b + 4 * y;
+                        let from: &[Hit; 4] = tile_hits[n..n + 4].try_into().expect("four");
+                        let to: &mut [Hit; 4] = (&mut hits[i..i + 4]).try_into().expect("four");
+                        *to = *from;
+                    }
+                }
+                continue;
+            }
+            // A tile at an edge, run by run.
+            let tile_runs = tile.runs();
+            let runs = &tile_runs.runs[..tile_runs.len];
             let mut n = 0;
             for &(i, len) in runs {
-                match (tile_rays.get_mut(n..n + 4), rays.get(i..i + 4)) {
-                    (Some(to), Some(from)) if len == 4 => {
-                        let to: &mut [Ray; 4] = to.try_into().expect("four");
-                        *to = *<&[Ray; 4]>::try_from(from).expect("four");
-                    }
-                    _ => tile_rays[n..n + len].copy_from_slice(&rays[i..i + len]),
-                }
+                tile_rays[n..n + len].copy_from_slice(&rays[i..i + len]);
                 n += len;
             }
-            let (tile, tile_out) = (&tile_rays[..n], &mut tile_hits[..n]);
-            // Mostly one packet of the whole tile.
-            let shape = if crate::packet::may_start_packet(tile) {
-                self.packet_shape(tile)
-            } else {
-                crate::packet::PacketShape::NONE
-            };
-            if shape.len != n || !self.trace_packet(tile, tile_out, &shape) {
-                self.trace_runs::<false>(tile, tile_out)?;
-            }
+            self.trace_tile(&tile_rays[..n], &mut tile_hits[..n])?;
             let mut n = 0;
             for &(i, len) in runs {
-                match (hits.get_mut(i..i + 4), tile_hits.get(n..n + 4)) {
-                    (Some(to), Some(from)) if len == 4 => {
-                        let to: &mut [Hit; 4] = to.try_into().expect("four");
-                        *to = *<&[Hit; 4]>::try_from(from).expect("four");
-                    }
-                    _ => hits[i..i + len].copy_from_slice(&tile_hits[n..n + len]),
-                }
+                hits[i..i + len].copy_from_slice(&tile_hits[n..n + len]);
                 n += len;
             }
+        }
+        Ok(())
+    }
+
+    /// The rays of one tile of an image, gathered: mostly one packet of the
+    /// whole tile, else run by run.
+    #[inline(always)]
+    fn trace_tile(&self, tile: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {
+        let shape = if crate::packet::may_start_packet(tile) {
+            self.packet_shape(tile)
+        } else {
+            crate::packet::PacketShape::NONE
+        };
+        if shape.len != tile.len() || !self.trace_packet(tile, hits, &shape) {
+            self.trace_runs::<false>(tile, hits)?;
         }
         Ok(())
     }

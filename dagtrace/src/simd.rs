@@ -71,24 +71,32 @@ mod state {
 /// instructions every processor with AVX2 also has that the batch path is
 /// compiled with (`#[target_feature]`: BMI1/2, POPCNT, LZCNT, FMA; no fused
 /// arithmetic is written, so FMA only allows the encoding). Looked up once.
-#[inline]
+#[inline(always)]
 pub(crate) fn available() -> bool {
-    use std::sync::atomic::{AtomicU8, Ordering};
-    // 0: not known yet, 1: no, 2: yes. One load on the hot paths that ask.
-    static AVAILABLE: AtomicU8 = AtomicU8::new(0);
-    match AVAILABLE.load(Ordering::Relaxed) {
-        0 => {
-            let yes = std::is_x86_feature_detected!("avx2")
-                && std::is_x86_feature_detected!("bmi1")
-                && std::is_x86_feature_detected!("bmi2")
-                && std::is_x86_feature_detected!("popcnt")
-                && std::is_x86_feature_detected!("lzcnt")
-                && std::is_x86_feature_detected!("fma");
-            AVAILABLE.store(1 + u8::from(yes), Ordering::Relaxed);
-            yes
-        }
+    // 0: not known yet, 1: no, 2: yes. One load on the hot paths that ask
+    // (inlined: a call there would make the caller save its vector
+    // registers around it).
+    match AVAILABLE.load(std::sync::atomic::Ordering::Relaxed) {
+        0 => detect(),
         v => v == 2,
     }
+}
+
+/// [`available`]'s answer, once known.
+static AVAILABLE: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
+
+/// Looks the features of [`available`] up and records the answer.
+#[cold]
+#[inline(never)]
+fn detect() -> bool {
+    let yes = std::is_x86_feature_detected!("avx2")
+        && std::is_x86_feature_detected!("bmi1")
+        && std::is_x86_feature_detected!("bmi2")
+        && std::is_x86_feature_detected!("popcnt")
+        && std::is_x86_feature_detected!("lzcnt")
+        && std::is_x86_feature_detected!("fma");
+    AVAILABLE.store(1 + u8::from(yes), std::sync::atomic::Ordering::Relaxed);
+    yes
 }
 
 /// Entries of the per-level tables: three vectors, more than the most
@@ -790,6 +798,7 @@ pub(crate) unsafe fn groups_meet(
 /// # Safety
 ///
 /// The processor must have AVX2.
+#[inline]
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn chain_tests(
     planes: [[f32; 3]; 3],

@@ -19,7 +19,7 @@
 //! The voxel bounding box supplies the three box axes. Degenerate triangles
 //! (segments, points) go through the same code: their zero axes never separate.
 //!
-//! Solid: see [`ChunkBuffer::add_crossings`].
+//! Solid: see [`crate::solid`].
 
 use crate::geom::{Int, SUBVOXEL, Triangle, edge_constraints, normal, solve_linear};
 

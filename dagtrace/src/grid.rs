@@ -181,11 +181,17 @@ impl Tile {
         self.x0 + TILE_WIDTH <= self.grid.width && self.y0 + TILE_HEIGHT <= self.grid.rows
     }
 
-    /// The first ray of row `y` (of 4) of block `b` (of 4, left to right)
-    /// of a full tile: the block's rows are `BLOCK` rays from there.
+    /// Calls `f(n, i)` for the 16 runs of `BLOCK` rays of a full tile, in
+    /// packet order (block by block, left to right, each block row by row):
+    /// `n` the run's first ray in the packet, `i` in the image.
     #[inline(always)]
-    pub(crate) fn block_row(&self, b: usize, y: usize) -> usize {
-        (self.y0 + y) * self.grid.width + self.x0 + b * BLOCK
+    pub(crate) fn for_each_block_row(&self, mut f: impl FnMut(usize, usize)) {
+        for b in 0..TILE_WIDTH / BLOCK {
+            for y in 0..TILE_HEIGHT {
+                let i = (self.y0 + y) * self.grid.width + self.x0 + b * BLOCK;
+                f((b * TILE_HEIGHT + y) * BLOCK, i);
+            }
+        }
     }
 
     /// The tile's rays, block by block, each block row by row.
@@ -316,12 +322,10 @@ mod tests {
                 assert!(rays.iter().all(|&i| i % w - x0 < 16 && i / w - y0 < 4));
                 assert_eq!(tile.is_full(), rays.len() == 64);
                 if tile.is_full() {
-                    // The blocks' rows as `block_row` gives them.
-                    let rows: Vec<usize> = (0..4)
-                        .flat_map(|b| (0..4).flat_map(move |y| (0..4).map(move |k| (b, y, k))))
-                        .map(|(b, y, k)| tile.block_row(b, y) + k)
-                        .collect();
-                    assert_eq!(rows, rays);
+                    // The blocks' rows as `for_each_block_row` gives them.
+                    let mut rows = Vec::new();
+                    tile.for_each_block_row(|n, i| rows.extend((0..4).map(|k| (n + k, i + k))));
+                    assert_eq!(rows, rays.iter().copied().enumerate().collect::<Vec<_>>());
                     for block in rays.chunks(16) {
                         let (bx, by) = (block[0] % w, block[0] / w);
                         assert!(block.iter().all(|&i| i % w - bx < 4 && i / w - by < 4));

@@ -130,13 +130,36 @@ struct BeamCell {
 /// The beam: the packet's common origin and the per-axis range of its
 /// inverse directions, in the mirrored grid frame, in `f64`.
 #[derive(Clone, Copy, Debug)]
-struct Beam {
-    origin: [f64; 3],
-    inv_lo: [f64; 3],
-    inv_hi: [f64; 3],
-    tmin: f64,
-    tmax: f64,
-    margin: f64,
+pub(crate) struct Beam {
+    pub(crate) origin: [f64; 3],
+    pub(crate) inv_lo: [f64; 3],
+    pub(crate) inv_hi: [f64; 3],
+    pub(crate) tmin: f64,
+    pub(crate) tmax: f64,
+    pub(crate) margin: f64,
+}
+
+/// The inverse directions of a packet's group beams by axis and group
+/// (`inv_lo[a][g]` for group `g`), for the vector test of all groups at once
+/// (`simd::groups_meet`); the rest of their beams is the packet's.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct GroupBeams {
+    pub(crate) inv_lo: [[f64; GROUPS]; 3],
+    pub(crate) inv_hi: [[f64; GROUPS]; 3],
+}
+
+impl GroupBeams {
+    /// The inverse directions of `groups`, by axis.
+    #[inline(always)]
+    fn of(groups: &[Beam; GROUPS]) -> GroupBeams {
+        let by_axis = |f: fn(&Beam) -> [f64; 3]| -> [[f64; GROUPS]; 3] {
+            std::array::from_fn(|a| std::array::from_fn(|g| f(&groups[g])[a]))
+        };
+        GroupBeams {
+            inv_lo: by_axis(|b| b.inv_lo),
+            inv_hi: by_axis(|b| b.inv_hi),
+        }
+    }
 }
 
 impl Beam {
@@ -192,18 +215,7 @@ impl Beam {
         #[cfg(target_arch = "x86_64")]
         if crate::simd::available() {
             // SAFETY: `simd::available` found AVX2.
-            let met = unsafe {
-                crate::simd::beam_children_met(
-                    self.origin,
-                    self.inv_lo,
-                    self.inv_hi,
-                    self.tmin,
-                    self.tmax,
-                    self.margin,
-                    pos,
-                    size * 0.5,
-                )
-            };
+            let met = unsafe { crate::simd::beam_children_met(self, pos, size * 0.5) };
             return unmirror(met, neg) & mask;
         }
         self.children_met_scalar(mask, pos, size, neg)
@@ -787,17 +799,10 @@ impl Tracer<'_> {
         if self.beams(&rays[0], shape, Some(&mut groups)).is_none() {
             return false;
         }
-        // The groups' inverse directions by axis, for the vector test of all
-        // groups at once (the rest of their beams is the packet's).
         #[cfg(target_arch = "x86_64")]
-        let group_lanes = crate::simd::available().then(|| {
-            let by_axis = |f: fn(&Beam) -> [f64; 3]| -> [[f64; GROUPS]; 3] {
-                std::array::from_fn(|a| std::array::from_fn(|g| f(&groups[g])[a]))
-            };
-            (by_axis(|b| b.inv_lo), by_axis(|b| b.inv_hi))
-        });
+        let group_beams = crate::simd::available().then(|| GroupBeams::of(&groups));
         #[cfg(not(target_arch = "x86_64"))]
-        let group_lanes: Option<()> = None;
+        let group_beams: Option<GroupBeams> = None;
         // The set-up of every ray, as `Tracer::setup` does it, with what the
         // rays share done once. Anything it would treat specially sends the
         // packet back to the ray-by-ray path.
@@ -877,21 +882,10 @@ impl Tracer<'_> {
                 let size = f64::from(beam_size);
                 let mut rays = 0u64;
                 #[cfg(target_arch = "x86_64")]
-                if let Some((inv_lo, inv_hi)) = &group_lanes {
-                    // SAFETY: `group_lanes` is only made where
+                if let Some(group_beams) = &group_beams {
+                    // SAFETY: `group_beams` is only made where
                     // `simd::available` found AVX2.
-                    let met = unsafe {
-                        crate::simd::groups_meet(
-                            beam.origin,
-                            inv_lo,
-                            inv_hi,
-                            beam.tmin,
-                            beam.tmax,
-                            beam.margin,
-                            pos,
-                            size,
-                        )
-                    };
+                    let met = unsafe { crate::simd::groups_meet(&beam, group_beams, pos, size) };
                     for g in 0..GROUPS {
                         if met >> g & 1 != 0 {
                             rays |= GROUP_MASK << (g * GROUP_RAYS);
@@ -899,7 +893,7 @@ impl Tracer<'_> {
                     }
                     rays &= alive;
                 }
-                if group_lanes.is_none() {
+                if group_beams.is_none() {
                     for (g, group) in groups.iter().enumerate() {
                         let members = alive & (GROUP_MASK << (g * GROUP_RAYS));
                         if members != 0 && group.meets(pos, size) {
@@ -1905,22 +1899,9 @@ mod tests {
                     inv_hi: beam.inv_hi.map(|v| v * (1.0 + 0.05 * g as f64)),
                     ..beam
                 });
-                let lanes = |f: fn(&Beam) -> [f64; 3]| -> [[f64; GROUPS]; 3] {
-                    std::array::from_fn(|a| std::array::from_fn(|g| f(&groups[g])[a]))
-                };
                 // SAFETY: checked.
-                let met = unsafe {
-                    crate::simd::groups_meet(
-                        beam.origin,
-                        &lanes(|b| b.inv_lo),
-                        &lanes(|b| b.inv_hi),
-                        beam.tmin,
-                        beam.tmax,
-                        beam.margin,
-                        pos,
-                        size,
-                    )
-                };
+                let met =
+                    unsafe { crate::simd::groups_meet(&beam, &GroupBeams::of(&groups), pos, size) };
                 for (g, group) in groups.iter().enumerate() {
                     assert_eq!(met >> g & 1 == 1, group.meets(pos, size), "group {g}");
                 }

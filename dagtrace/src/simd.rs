@@ -37,7 +37,7 @@ use std::arch::x86_64::*;
 use dagfmt::batch::{Hit, Ray};
 use glam::{BVec3A, Vec3A};
 
-use crate::packet::{ChainTests, PacketLanes, ScannedRays};
+use crate::packet::{Beam, ChainTests, GroupBeams, PacketLanes, ScannedRays};
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
 use crate::tracer::{
     Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
@@ -683,27 +683,18 @@ fn fold_max(v: __m256) -> f32 {
 }
 
 /// `packet::Beam::children_met` before its mirroring: bit `m` set when some
-/// line of the beam (origin, per-axis `inv_lo`/`inv_hi`, `[tmin, tmax]`,
-/// cells enlarged by `margin`) may meet the mirrored child `m` of the node of
-/// edge `2 * half` at `pos`. The same `f64` operations as the scalar form,
-/// four children to a vector (so the same answers).
+/// line of `beam` may meet the mirrored child `m` of the node of edge
+/// `2 * half` at `pos`. The same `f64` operations as the scalar form, four
+/// children to a vector (so the same answers).
 ///
 /// # Safety
 ///
 /// The processor must have AVX2.
 #[inline]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-pub(crate) unsafe fn beam_children_met(
-    origin: [f64; 3],
-    inv_lo: [f64; 3],
-    inv_hi: [f64; 3],
-    tmin: f64,
-    tmax: f64,
-    margin: f64,
-    pos: [f64; 3],
-    half: f64,
-) -> u32 {
+pub(crate) unsafe fn beam_children_met(beam: &Beam, pos: [f64; 3], half: f64) -> u32 {
+    let (origin, inv_lo, inv_hi) = (beam.origin, beam.inv_lo, beam.inv_hi);
+    let (tmin, tmax, margin) = (beam.tmin, beam.tmax, beam.margin);
     let v = |a: [f64; 3]| _mm256_setr_pd(a[0], a[1], a[2], 0.0);
     let (origin, inv_lo, inv_hi, pos) = (v(origin), v(inv_lo), v(inv_hi), v(pos));
     let (margin, half) = (_mm256_set1_pd(margin), _mm256_set1_pd(half));
@@ -752,31 +743,28 @@ pub(crate) unsafe fn beam_children_met(
     low | high << 4
 }
 
-/// `packet::Beam::meets` for four beams at once that differ only in their
-/// inverse directions (a packet's groups: `inv_lo[a][g]`, `inv_hi[a][g]` for
-/// group `g`), against the cube of edge `size` at `pos`: bit `g` set when
-/// beam `g` may meet it. The same `f64` operations, and like `f64::max` and
-/// `f64::min` a NaN plane parameter is passed over.
+/// `packet::Beam::meets` for a packet's four group beams at once, which
+/// differ from the packet's `beam` only in their inverse directions
+/// (`groups`), against the cube of edge `size` at `pos`: bit `g` set when
+/// group `g`'s beam may meet it. The same `f64` operations, and like
+/// `f64::max` and `f64::min` a NaN plane parameter is passed over.
 ///
 /// # Safety
 ///
 /// The processor must have AVX2.
 #[inline]
 #[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
 pub(crate) unsafe fn groups_meet(
-    origin: [f64; 3],
-    inv_lo: &[[f64; 4]; 3],
-    inv_hi: &[[f64; 4]; 3],
-    tmin: f64,
-    tmax: f64,
-    margin: f64,
+    beam: &Beam,
+    groups: &GroupBeams,
     pos: [f64; 3],
     size: f64,
 ) -> u32 {
+    let (origin, margin) = (beam.origin, beam.margin);
+    let (inv_lo, inv_hi) = (&groups.inv_lo, &groups.inv_hi);
     let load = |v: &[f64; 4]| _mm256_setr_pd(v[0], v[1], v[2], v[3]);
-    let mut enter = _mm256_set1_pd(tmin);
-    let mut exit = _mm256_set1_pd(tmax);
+    let mut enter = _mm256_set1_pd(beam.tmin);
+    let mut exit = _mm256_set1_pd(beam.tmax);
     for a in 0..3 {
         let lo = pos[a] - margin - origin[a];
         let hi = pos[a] + size + margin - origin[a];

@@ -719,13 +719,10 @@ impl<'a> Tracer<'a> {
             // do not follow this many streams).
             if let Some(next) = ahead.next() {
                 if next.is_full() {
-                    for b in 0..4 {
-                        for y in 0..4 {
-                            let i = next.block_row(b, y);
-                            prefetch_range(rays.get(i..i + 4).unwrap_or_default());
-                            prefetch_range(hits.get(i..i + 4).unwrap_or_default());
-                        }
-                    }
+                    next.for_each_block_row(|_, i| {
+                        prefetch_range(rays.get(i..i + 4).unwrap_or_default());
+                        prefetch_range(hits.get(i..i + 4).unwrap_or_default());
+                    });
                 } else {
                     let next = next.runs();
                     for &(i, len) in &next.runs[..next.len] {
@@ -737,26 +734,17 @@ impl<'a> Tracer<'a> {
             if tile.is_full() {
                 // The usual tile: its sixteen 4-ray runs copied as arrays,
                 // from the positions of its blocks' rows.
-                for b in 0..4 {
-                    for y in 0..4 {
-                        let i = tile.block_row(b, y);
-                        let n = 16 * b + 4 * y;
-                        let from: &[Ray; 4] = rays[i..i + 4].try_into().expect("four");
-                        let to: &mut [Ray; 4] =
-                            (&mut tile_rays[n..n + 4]).try_into().expect("four");
-                        *to = *from;
-                    }
-                }
+                tile.for_each_block_row(|n, i| {
+                    let from: &[Ray; 4] = rays[i..i + 4].try_into().expect("four");
+                    let to: &mut [Ray; 4] = (&mut tile_rays[n..n + 4]).try_into().expect("four");
+                    *to = *from;
+                });
                 self.trace_tile(&tile_rays, &mut tile_hits)?;
-                for b in 0..4 {
-                    for y in 0..4 {
-                        let i = tile.block_row(b, y);
-                        let n = 16 * b + 4 * y;
-                        let from: &[Hit; 4] = tile_hits[n..n + 4].try_into().expect("four");
-                        let to: &mut [Hit; 4] = (&mut hits[i..i + 4]).try_into().expect("four");
-                        *to = *from;
-                    }
-                }
+                tile.for_each_block_row(|n, i| {
+                    let from: &[Hit; 4] = tile_hits[n..n + 4].try_into().expect("four");
+                    let to: &mut [Hit; 4] = (&mut hits[i..i + 4]).try_into().expect("four");
+                    *to = *from;
+                });
                 continue;
             }
             // A tile at an edge, run by run.

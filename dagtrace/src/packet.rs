@@ -480,14 +480,13 @@ const SUBTREE_SLOTS: usize = 4;
 
 /// Rays that may join a packet, found by [`scan_ray`] (one ray) or
 /// `simd::scan_for_packet` (eight): how many of the scanned rays, from the
-/// first, may join, and over those the ranges of `|d_a|` and the smallest
-/// `|d|²` (empty ranges and an infinite `|d|²` when none may).
+/// first, may join, and over those the ranges of `|d_a|` (empty ranges when
+/// none may).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) struct ScannedRays {
     pub(crate) len: usize,
     pub(crate) lo: Vec3A,
     pub(crate) hi: Vec3A,
-    pub(crate) shortest: f32,
 }
 
 impl ScannedRays {
@@ -496,7 +495,6 @@ impl ScannedRays {
         len: 0,
         lo: Vec3A::INFINITY,
         hi: Vec3A::ZERO,
-        shortest: f32::INFINITY,
     };
 }
 
@@ -530,7 +528,6 @@ pub(crate) fn scan_ray(r: &Ray, first: &Ray) -> ScannedRays {
         len: 1,
         lo: m,
         hi: m,
-        shortest: d2,
     }
 }
 
@@ -615,8 +612,9 @@ impl Tracer<'_> {
         let cell = f64::from(self.cell_size[usize::from(self.depth - 5)]);
         let max_spread = (BEAM_WIDTH_CELLS * cell / far.max(cell)) as f32;
         // The spread of the directions is that of their components: per
-        // axis, the range of |d_a| over the run, relative to the shortest
-        // |d|.
+        // axis, the range of |d_a| over the run, relative to the length of
+        // the smallest |d_a| of each axis (no longer than any ray's |d|, and
+        // found without a sum per ray).
         let spread_limit = max_spread * max_spread;
         let mut shape = PacketShape { origin, ..none };
         // The ranges of |d_a| of the groups before the current one, and of
@@ -624,11 +622,10 @@ impl Tracer<'_> {
         let mut before = (Vec3A::INFINITY, Vec3A::ZERO);
         let mut group = before;
         // Written so that a NaN fails.
-        let within = |lo: Vec3A, hi: Vec3A, d2: f32| {
+        let within = |lo: Vec3A, hi: Vec3A| {
             let spread = (hi - lo).max_element();
-            spread * spread <= spread_limit * d2
+            spread * spread <= spread_limit * lo.length_squared()
         };
-        let mut shortest = f32::INFINITY;
         let mut n = 0;
         let limit = rays.len().min(PACKET_RAYS);
         // The rays of the next packet are read soon, and a batch is mostly
@@ -668,7 +665,6 @@ impl Tracer<'_> {
             #[cfg(not(target_arch = "x86_64"))]
             let scanned = scan_ray(&rays[n], first);
             group = (group.0.min(scanned.lo), group.1.max(scanned.hi));
-            shortest = shortest.min(scanned.shortest);
             n += scanned.len;
             // Steps of 16 and 8 start at multiples of theirs, so a group
             // ends at the end of a step that took all its rays.
@@ -676,7 +672,7 @@ impl Tracer<'_> {
                 // The spread, checked a group at a time: a group that makes
                 // it too wide ends the packet before it.
                 let (lo, hi) = (before.0.min(group.0), before.1.max(group.1));
-                if !within(lo, hi, shortest) {
+                if !within(lo, hi) {
                     n -= GROUP_RAYS;
                     group = (Vec3A::INFINITY, Vec3A::ZERO);
                     break;
@@ -690,7 +686,7 @@ impl Tracer<'_> {
             }
         }
         if n % GROUP_RAYS != 0 {
-            if within(before.0.min(group.0), before.1.max(group.1), shortest) {
+            if within(before.0.min(group.0), before.1.max(group.1)) {
                 shape.ranges[n / GROUP_RAYS] = group;
             } else {
                 n -= n % GROUP_RAYS;

@@ -437,7 +437,7 @@ fn refill(
 
 /// `packet::scan_ray` of eight rays at once: how many of `rays`, from the
 /// first, may join the packet that `first` starts, with the ranges of their
-/// `|d_a|` and their smallest `|d|²`, computed with the same `f32` operations
+/// `|d_a|`, computed with the same `f32` operations
 /// (so the same packets).
 ///
 /// # Safety
@@ -458,6 +458,10 @@ pub(crate) unsafe fn scan_for_packet(rays: &[Ray; 8], first: &Ray) -> ScannedRay
 /// The processor must have AVX2.
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn scan_group(rays: &[Ray; 16], first: &Ray) -> ScannedRays {
+    // SAFETY: the caller's.
+    if let Some(all) = unsafe { scan_whole_group(rays, first) } {
+        return all;
+    }
     let (a, b) = rays.split_at(8);
     // SAFETY: the caller's.
     let (a, b) = unsafe {
@@ -476,13 +480,73 @@ pub(crate) unsafe fn scan_group(rays: &[Ray; 16], first: &Ray) -> ScannedRays {
     let lo: [__m256; 3] =
         std::array::from_fn(|i| _mm256_min_ps(a.m[i], or_else(b.m[i], f32::INFINITY)));
     let hi: [__m256; 3] = std::array::from_fn(|i| _mm256_max_ps(a.m[i], or_else(b.m[i], 0.0)));
-    let d2 = _mm256_min_ps(a.d2, or_else(b.d2, f32::INFINITY));
     ScannedRays {
         len,
         lo: Vec3A::new(fold_min(lo[0]), fold_min(lo[1]), fold_min(lo[2])),
         hi: Vec3A::new(fold_max(hi[0]), fold_max(hi[1]), fold_max(hi[2])),
-        shortest: fold_min(d2),
     }
+}
+
+/// [`scan_group`] where all sixteen rays may join, the usual case, or `None`
+/// (then the ray-by-ray scan decides). Sufficient tests on the sixteen rays
+/// at once, each ray's first 32 bytes one vector, with no transpose:
+/// - their starts and direction signs equal `first`'s (the OR of the rays'
+///   XORs with it);
+/// - their `|d_a|` ranges, as the integer minimum and maximum of the bits
+///   (the order of non-negative floats), with all components finite, none
+///   above 2^60 (so every `|d|²` is finite), and the smallest component of
+///   all above 10^-6 times the largest of all (so each ray's is above 10^-6
+///   times its own largest: `packet::scan_ray`'s test, rounding being
+///   monotonic);
+/// - the same level.
+///
+/// When they hold, every ray passes `scan_ray`, and the ranges are the
+/// same numbers.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn scan_whole_group(rays: &[Ray; 16], first: &Ray) -> Option<ScannedRays> {
+    // SAFETY: the first 32 bytes of each ray lie inside it (the assertion on
+    // `Ray`'s layout below).
+    let words = |r: &Ray| unsafe { _mm256_loadu_si256(std::ptr::from_ref(r).cast::<__m256i>()) };
+    let f = words(first);
+    let magnitude = _mm256_set1_epi32(0x7fff_ffff);
+    let mut differ = _mm256_setzero_si256();
+    let mut lo = magnitude;
+    let mut hi = _mm256_setzero_si256();
+    for r in rays {
+        let v = words(r);
+        differ = _mm256_or_si256(differ, _mm256_xor_si256(v, f));
+        let m = _mm256_and_si256(v, magnitude);
+        lo = _mm256_min_epi32(lo, m);
+        hi = _mm256_max_epi32(hi, m);
+    }
+    // Lanes: origin x, y, z, direction x, y, z, tmin, tmax. The start must
+    // be equal, the direction's sign bits too.
+    let sign = i32::MIN;
+    let must_match = _mm256_setr_epi32(-1, -1, -1, sign, sign, sign, -1, -1);
+    let mut level = true;
+    for r in rays {
+        level &= r.level == first.level;
+    }
+    if _mm256_testz_si256(differ, must_match) == 0 || !level {
+        return None;
+    }
+    // SAFETY: 32 bytes either way, and any bits are a `u32`.
+    let lanes = |v: __m256i| -> [u32; 8] { unsafe { std::mem::transmute(v) } };
+    let (lo, hi) = (lanes(lo), lanes(hi));
+    let (lo, hi) = ([lo[3], lo[4], lo[5]], [hi[3], hi[4], hi[5]]);
+    // 2^60: squares and their sum stay far below f32::MAX (2^128).
+    let bound = (2f32.powi(60)).to_bits();
+    if hi.iter().any(|&h| h > bound) {
+        return None;
+    }
+    let lo = Vec3A::from_array(lo.map(f32::from_bits));
+    let hi = Vec3A::from_array(hi.map(f32::from_bits));
+    (lo.min_element() > hi.max_element() * 1e-6).then_some(ScannedRays { len: 16, lo, hi })
 }
 
 /// All ones in the lanes below `len` (at most 8).
@@ -498,9 +562,8 @@ fn lanes_below(len: usize) -> __m256 {
 struct ScannedEight {
     /// Bit `k`: ray `k` may join.
     joins: u32,
-    /// `|d_a|` per axis, and `|d|²`, per lane.
+    /// `|d_a|` per axis, per lane.
     m: [__m256; 3],
-    d2: __m256,
 }
 
 impl ScannedEight {
@@ -528,7 +591,6 @@ impl ScannedEight {
                 fold_max(or_else(m[1], 0.0)),
                 fold_max(or_else(m[2], 0.0)),
             ),
-            shortest: fold_min(or_else(self.d2, f32::INFINITY)),
         }
     }
 }
@@ -597,7 +659,6 @@ unsafe fn scan_eight(rays: &[Ray; 8], first: &Ray) -> ScannedEight {
     ScannedEight {
         joins: _mm256_movemask_ps(_mm256_and_ps(same, regular)) as u32 & level,
         m,
-        d2,
     }
 }
 
@@ -1453,7 +1514,6 @@ mod tests {
                         len: scalar.len + 1,
                         lo: scalar.lo.min(one.lo),
                         hi: scalar.hi.max(one.hi),
-                        shortest: scalar.shortest.min(one.shortest),
                     };
                 }
                 scalar
@@ -1463,7 +1523,6 @@ mod tests {
                     s.len,
                     s.lo.to_array().map(f32::to_bits),
                     s.hi.to_array().map(f32::to_bits),
-                    s.shortest.to_bits(),
                 )
             };
             let eight: &[Ray; 8] = rays[..8].try_into().unwrap();

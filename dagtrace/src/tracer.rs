@@ -687,6 +687,11 @@ impl<'a> Tracer<'a> {
                 continue;
             }
             self.trace_lanes(&rays[run..i], &mut hits[run..i])?;
+            // The next packet's hits are written soon.
+            prefetch_range(
+                hits.get(i + n..(i + n + crate::packet::PACKET_RAYS).min(count))
+                    .unwrap_or_default(),
+            );
             if !self.trace_packet(&rays[i..i + n], &mut hits[i..i + n], &shape) {
                 self.trace_lanes(&rays[i..i + n], &mut hits[i..i + n])?;
             }

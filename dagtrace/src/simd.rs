@@ -574,7 +574,7 @@ impl ScannedEight {
         if len == 0 {
             return ScannedRays::NONE;
         }
-        // Over the rays that join: ranges and the smallest |d|², the others
+        // Over the rays that join: the ranges, the others
         // replaced by the neutral values.
         let keep = lanes_below(len);
         let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);

@@ -18,7 +18,8 @@
 //!   so the memory latency of one group's reads is spent on the other groups
 //!   (32 reads in flight; with two groups, d12 random rays took 7–8 % more
 //!   time and d14 tiles 10 % more, for the same instructions, on an Intel
-//!   Xeon with 2 MB of L2 per core).
+//!   Xeon with 2 MB of L2 per core). DAGs small enough to stay in the caches
+//!   take two groups (`SMALL_DAG_GROUPS`): there more only cost bookkeeping.
 //! - Rays are set up four at a time in `f64` vectors ([`setup4`]), with the
 //!   very same operations as [`Tracer::setup`], when they are usual (full
 //!   depth, finite, no far origin, no direction component treated as zero).
@@ -49,8 +50,12 @@ use crate::tracer::{
 
 /// Rays to a vector.
 const W: usize = 8;
-/// Groups of [`W`] rays in flight, taking turns.
+/// Groups of [`W`] rays in flight, taking turns, for DAGs larger than
+/// [`crate::tracer::SMALL_DAG_BYTES`].
 const GROUPS: usize = 4;
+/// Groups of [`W`] rays in flight for the small DAGs, which mostly stay in
+/// the caches.
+const SMALL_DAG_GROUPS: usize = 2;
 
 /// What a lane of a group is doing: the values of [`Group::state`].
 mod state {
@@ -277,35 +282,58 @@ pub(crate) fn trace_lanes(
 
 /// [`trace_lanes`] without the scalar fallback.
 fn try_trace_lanes(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> Result<(), Abandon> {
-    let sections = Sections::new(tracer).ok_or(Abandon)?;
-    let mut groups = [Group::default(); GROUPS];
-    // SAFETY: only called where `available()` found the features.
-    unsafe { run(tracer, &sections, &mut groups, rays, hits) }
+    try_trace_lanes_with(tracer, rays, hits, tracer.small)
 }
 
-/// [`trace_lanes`] without the scalar fallback: `false` when the vector
-/// traversal gave up (on valid DAGs it never should).
+/// [`try_trace_lanes`] with the small DAGs' number of groups or the others'.
+fn try_trace_lanes_with(
+    tracer: &Tracer<'_>,
+    rays: &[Ray],
+    hits: &mut [Hit],
+    small: bool,
+) -> Result<(), Abandon> {
+    let sections = Sections::new(tracer).ok_or(Abandon)?;
+    // SAFETY: only called where `available()` found the features.
+    unsafe {
+        if small {
+            let mut groups = [Group::default(); SMALL_DAG_GROUPS];
+            run(tracer, &sections, &mut groups, rays, hits)
+        } else {
+            let mut groups = [Group::default(); GROUPS];
+            run(tracer, &sections, &mut groups, rays, hits)
+        }
+    }
+}
+
+/// [`trace_lanes`] without the scalar fallback, with the small DAGs' number
+/// of groups or the others' (`small`) whatever the DAG's size: `false` when
+/// the vector traversal gave up (on valid DAGs it never should).
 #[cfg(test)]
-pub(crate) fn trace_lanes_or_give_up(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> bool {
-    try_trace_lanes(tracer, rays, hits).is_ok()
+pub(crate) fn trace_lanes_or_give_up(
+    tracer: &Tracer<'_>,
+    rays: &[Ray],
+    hits: &mut [Hit],
+    small: bool,
+) -> bool {
+    try_trace_lanes_with(tracer, rays, hits, small).is_ok()
 }
 
 /// The vector traversal of `rays` into `hits`: the groups step in turn, and
 /// between their steps the lanes they flagged get their scalar work (a brick
 /// test, an answer, a new ray). `Err` when a fault or an error stopped it.
 #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
-unsafe fn run(
+unsafe fn run<const G: usize>(
     tracer: &Tracer<'_>,
     sections: &Sections,
-    groups: &mut [Group; GROUPS],
+    groups: &mut [Group; G],
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
     let count = rays.len().min(hits.len());
     let mut ahead = Ahead::default();
     // Per group: the lanes that need scalar work (an answer, a brick, a new ray).
-    let mut attention = [(1u32 << W) - 1; GROUPS];
-    let mut busy = [0u32; GROUPS];
+    let mut attention = [(1u32 << W) - 1; G];
+    let mut busy = [0u32; G];
     loop {
         for (g, group) in groups.iter_mut().enumerate() {
             let mut lanes = attention[g];

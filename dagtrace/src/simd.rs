@@ -468,8 +468,7 @@ fn refill(
 
 /// `packet::scan_ray` of eight rays at once: how many of `rays`, from the
 /// first, may join the packet that `first` starts, with the ranges of their
-/// `|d_a|`, computed with the same `f32` operations
-/// (so the same packets).
+/// `|d_a|`, computed with the same `f32` operations (so the same packets).
 ///
 /// # Safety
 ///
@@ -605,8 +604,8 @@ impl ScannedEight {
         if len == 0 {
             return ScannedRays::NONE;
         }
-        // Over the rays that join: the ranges, the others
-        // replaced by the neutral values.
+        // Over the rays that join: the ranges, the others replaced by the
+        // neutral values.
         let keep = lanes_below(len);
         let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
         let m = self.m;

@@ -176,7 +176,8 @@ struct Group {
     py: [f32; W],
     pz: [f32; W],
     size: [f32; W],
-    // Lower corner of the brick or found cell.
+    // Lower corner of the brick or found cell (in the lanes that are `BRICK`
+    // or `FOUND`; the others hold the corner of their last child).
     bx: [f32; W],
     by: [f32; W],
     bz: [f32; W],
@@ -1310,16 +1311,19 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         next = blend(next, _mm256_set1_epi32(state::FOUND), found);
         next = blend(next, _mm256_set1_epi32(state::MISS), at_top);
         let descend_f = _mm256_castsi256_ps(descend);
-        let stop_f = _mm256_castsi256_ps(at_stop);
         sti!(g.state, next);
         sti!(g.level, blend(level, child_level, descend));
         stf!(g.px, _mm256_blendv_ps(px, cx, descend_f));
         stf!(g.py, _mm256_blendv_ps(py, cy, descend_f));
         stf!(g.pz, _mm256_blendv_ps(pz, cz, descend_f));
         stf!(g.size, _mm256_blendv_ps(size, half, descend_f));
-        stf!(g.bx, _mm256_blendv_ps(ldf!(g.bx), cx, stop_f));
-        stf!(g.by, _mm256_blendv_ps(ldf!(g.by), cy, stop_f));
-        stf!(g.bz, _mm256_blendv_ps(ldf!(g.bz), cz, stop_f));
+        // Every lane's child corner, though only the lanes at their stop
+        // level read it (as `BRICK` or `FOUND`, right after this step):
+        // blended with the old values, the stores became masked stores
+        // (`vmaskmovps`), which are slow on AMD's Zen.
+        stf!(g.bx, cx);
+        stf!(g.by, cy);
+        stf!(g.bz, cz);
         sti!(g.target, blend(target, pointer, choose));
         sti!(g.word, word);
         sti!(g.mask, mask);

@@ -26,8 +26,8 @@
 //! - What is rare or branchy stays scalar, done by the tracer's own functions
 //!   for one ray at a time: the set-up of unusual rays ([`Tracer::begin`]),
 //!   the 4³ brick at the end of a descent ([`Tracer::brick`]), the answer
-//!   ([`Tracer::finish`]), and pointers whose 32-bit load would cross the end
-//!   of their section.
+//!   ([`Tracer::finish`]), and pointers whose 32-bit load would leave the
+//!   file or that lie outside their section (`Sections::fast_limit`).
 //! - A read outside its level (a malformed file) or any error stops the
 //!   vector traversal, and the whole batch is traced again by
 //!   [`Tracer::trace_lanes_scalar`], which reports the error exactly as it
@@ -122,6 +122,14 @@ struct Sections {
     len: [i32; LEVEL_TABLE],
     /// Per level: pointer width in bytes.
     width: [i32; LEVEL_TABLE],
+    /// Per level: the largest byte offset in the section of a pointer that
+    /// one 32-bit gather reads: the pointer inside the section and the four
+    /// bytes inside the file (`Level::readable`). -1 when there is none.
+    /// Pointers past it are read by the scalar `Level::pointer_or_fault`,
+    /// which also reports the ones outside the section. (With the section's
+    /// own end as the limit, d12 random rays sent 4 % of their pointers,
+    /// those of the small top levels, down the scalar path.)
+    fast_limit: [i32; LEVEL_TABLE],
 }
 
 impl Sections {
@@ -139,6 +147,7 @@ impl Sections {
             offset: [0; LEVEL_TABLE],
             len: [0; LEVEL_TABLE],
             width: [0; LEVEL_TABLE],
+            fast_limit: [-1; LEVEL_TABLE],
         };
         for (l, level) in used.iter().enumerate() {
             if level.bytes.is_empty() {
@@ -152,6 +161,10 @@ impl Sections {
             s.offset[l] = offset as i32;
             s.len[l] = level.bytes.len() as i32;
             s.width[l] = level.width as i32;
+            let in_section = level.bytes.len() as i64 - i64::from(level.width);
+            // (At most 64 bytes past the section: the room checked above.)
+            let in_file = level.readable.len().min(level.bytes.len() + 64) as i64 - 4;
+            s.fast_limit[l] = in_section.min(in_file).max(-1) as i32;
         }
         Some(s)
     }
@@ -196,7 +209,11 @@ struct Group {
     remaining: [i32; W],
     /// Bit `l` set when the frame of level `l` on the path has children left.
     pending: [i32; W],
-    walks: [Walk; W],
+    /// Each ray as the scalar parts take it: clipped (`Walk::q`), and its
+    /// own `tmin` (`Walk::ray_tmin`). The rest of its `Walk` lives in the
+    /// vectors above.
+    prepared: [Prepared; W],
+    ray_tmin: [f32; W],
     stacks: [Stack; W],
     ray: [usize; W],
 }
@@ -229,7 +246,8 @@ impl Default for Group {
             mask: [0; W],
             remaining: [0; W],
             pending: [0; W],
-            walks: [Walk::default(); W],
+            prepared: [Prepared::default(); W],
+            ray_tmin: [0.0; W],
             stacks: [Stack::default(); W],
             ray: [0; W],
         }
@@ -260,7 +278,8 @@ impl Group {
         self.target[lane] = walk.target as i32;
         self.state[lane] = state::VISIT;
         self.pending[lane] = 0;
-        self.walks[lane] = walk;
+        self.prepared[lane] = walk.q;
+        self.ray_tmin[lane] = walk.ray_tmin;
         self.ray[lane] = ray;
     }
 }
@@ -344,11 +363,10 @@ unsafe fn run<const G: usize>(
                 // The answer of a lane that is done (`None` for an idle lane).
                 let answer: Option<Option<Cell>> = match group.state[lane] {
                     state::BRICK => {
-                        let walk = &group.walks[lane];
                         let leaf = group.target[lane] as u32;
                         let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
                         let mut fault = None;
-                        let found = tracer.brick(&walk.q, leaf, at, &mut fault);
+                        let found = tracer.brick(&group.prepared[lane], leaf, at, &mut fault);
                         if fault.is_some() {
                             return Err(Abandon);
                         }
@@ -364,7 +382,7 @@ unsafe fn run<const G: usize>(
                         let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
                         Some(Some((
                             at,
-                            group.walks[lane].stop,
+                            group.stop[lane] as u8,
                             group.target[lane] as u32,
                         )))
                     }
@@ -376,9 +394,12 @@ unsafe fn run<const G: usize>(
                     }
                 };
                 if let Some(cell) = answer {
-                    let walk = &group.walks[lane];
+                    let ray = Prepared {
+                        tmin: group.ray_tmin[lane],
+                        ..group.prepared[lane]
+                    };
                     hits[group.ray[lane]] = tracer
-                        .finish(&walk.ray(), cell, &group.stacks[lane], None)
+                        .finish(&ray, cell, &group.stacks[lane], None)
                         .map_err(|_| Abandon)?;
                 }
                 // A new ray for the lane, if any is left.
@@ -389,18 +410,40 @@ unsafe fn run<const G: usize>(
                     busy[g] |= 1 << lane;
                 }
             }
-            attention[g] = if busy[g] == 0 {
-                0
-            } else {
-                // SAFETY: `trace_lanes` is only called where `available()`
-                // found AVX2.
-                unsafe { step(tracer, sections, group) }?
-            };
         }
         if busy.iter().all(|&b| b == 0) {
             return Ok(());
         }
+        // SAFETY: `trace_lanes` is only called where `available()` found AVX2.
+        unsafe { step_groups(tracer, sections, groups, &busy, &mut attention) }?;
     }
+}
+
+/// One [`step`] of each group with busy lanes, recording the lanes that then
+/// need scalar work in `attention`. One call for all the groups: with a call
+/// per group, saving and restoring registers and loading constants took 3 %
+/// of the instructions of d12 random rays.
+///
+/// # Safety
+///
+/// The processor must have AVX2.
+#[target_feature(enable = "avx2")]
+unsafe fn step_groups(
+    tracer: &Tracer<'_>,
+    sections: &Sections,
+    groups: &mut [Group],
+    busy: &[u32],
+    attention: &mut [u32],
+) -> Result<(), Abandon> {
+    for ((group, &busy), attention) in groups.iter_mut().zip(busy).zip(attention) {
+        *attention = if busy == 0 {
+            0
+        } else {
+            // SAFETY: the caller's.
+            unsafe { step(tracer, sections, group) }?
+        };
+    }
+    Ok(())
 }
 
 /// Rays set up ahead, four at a time ([`setup4`]), for [`refill`].
@@ -1099,11 +1142,15 @@ macro_rules! sti {
 /// # Safety
 ///
 /// The processor must have AVX2.
+#[inline]
 #[target_feature(enable = "avx2")]
 unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, Abandon> {
     let g_ptr: *mut Group = g;
     let mut word_out = [0i32; W];
-    let mut bits_out = [0i32; W];
+    // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
+    // offset in the group's stacks.
+    let mut frame_out = [0u64; W];
+    let mut frame_at_out = [0i32; W];
     let mut level_out = [0i32; W];
     let mut rank_out = [0i32; W];
     let mut fetch_out = [0i32; W];
@@ -1113,7 +1160,8 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
     // table entries at in-range indices (`neg` < 8 and keys < 512 or masks <
     // 256 in the padded tables; stack frames of levels < LEVEL_SLOTS of
     // lanes < W), and node words checked against their section's length just
-    // before (headers: `target < len / 4`; pointers: `at + 4 <= len`), at
+    // before (headers: `target < len / 4`; pointers: `at <= fast_limit`, so
+    // the four bytes lie in the file's bytes, `Level::readable`), at
     // offsets from `s.base` that `Sections::new` checked to address the
     // sections.
     unsafe {
@@ -1126,6 +1174,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             [0, 8, 16].map(|i| _mm256_loadu_si256(t[i..i + 8].as_ptr().cast()))
         };
         let (offsets, lens, widths) = (tables(&s.offset), tables(&s.len), tables(&s.width));
+        let fast_limits = tables(&s.fast_limit);
 
         let state = ldi!(g.state);
         let visit = _mm256_cmpeq_epi32(state, _mm256_set1_epi32(state::VISIT));
@@ -1214,6 +1263,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         level = blend(level, highest, pop);
         let lane_bytes = _mm256_setr_epi32(0, 256, 512, 768, 1024, 1280, 1536, 1792);
         const _: () = assert!(std::mem::size_of::<Stack>() == 256);
+        const _: () = assert!(std::mem::size_of::<Frame>() == 8);
         let frame_at = _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(level));
         let stacks: *const i32 = g.stacks.as_ptr().cast();
         word = _mm256_mask_i32gather_epi32::<1>(word, stacks, frame_at, pop);
@@ -1252,7 +1302,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             _mm256_andnot_si256(_mm256_cmpeq_epi32(remaining, zero), level_bit),
         );
         let rank = popcount8(_mm256_and_si256(mask, _mm256_sub_epi32(bit, one)));
-        let len = by_level(&lens, level);
+        let fast_limit = by_level(&fast_limits, level);
         let width = by_level(&widths, level);
         // The low `width` bytes: all of them for width 4 (a shift by 32 gives 0).
         let pointer_mask =
@@ -1261,7 +1311,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             _mm256_add_epi32(_mm256_slli_epi32::<2>(word), _mm256_set1_epi32(4)),
             _mm256_mullo_epi32(rank, width),
         );
-        let cut = _mm256_cmpgt_epi32(_mm256_add_epi32(at, _mm256_set1_epi32(4)), len);
+        let cut = _mm256_cmpgt_epi32(at, fast_limit);
         let fast = _mm256_andnot_si256(cut, choose);
         let pointer = _mm256_and_si256(
             _mm256_mask_i32gather_epi32::<1>(
@@ -1279,16 +1329,27 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         // The frame of this node, to come back to: written below, lane by
         // lane (the lanes that choose no child write to the unused last slot).
         sti!(word_out, word);
+        let frame_bits = _mm256_or_si256(
+            _mm256_or_si256(mask, _mm256_slli_epi32::<8>(remaining)),
+            _mm256_slli_epi32::<16>(child),
+        );
+        // `Frame`'s bytes (`repr(C)`: `word`, then the bits), lanes 0, 1, 4, 5
+        // and 2, 3, 6, 7, put back in lane order.
+        let frames_a = _mm256_unpacklo_epi32(word, frame_bits);
+        let frames_b = _mm256_unpackhi_epi32(word, frame_bits);
         sti!(
-            bits_out,
-            _mm256_or_si256(
-                _mm256_or_si256(mask, _mm256_slli_epi32::<8>(remaining)),
-                _mm256_slli_epi32::<16>(child),
-            )
+            frame_out[..4],
+            _mm256_permute2x128_si256::<0x20>(frames_a, frames_b)
         );
         sti!(
-            level_out,
-            blend(_mm256_set1_epi32(LEVEL_SLOTS as i32 - 1), level, choose)
+            frame_out[4..],
+            _mm256_permute2x128_si256::<0x31>(frames_a, frames_b)
+        );
+        let frame_level = blend(_mm256_set1_epi32(LEVEL_SLOTS as i32 - 1), level, choose);
+        sti!(level_out, frame_level);
+        sti!(
+            frame_at_out,
+            _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(frame_level))
         );
         let child_level = _mm256_add_epi32(level, one);
         let at_stop = _mm256_and_si256(choose, _mm256_cmpeq_epi32(child_level, ldi!(g.stop)));
@@ -1339,16 +1400,18 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
     }
 
     // Scalar tail: frames and prefetches, then pointers near a section's end.
+    let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
     for lane in 0..W {
-        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
-        let [mask, remaining, last, _] = bits_out[lane].to_le_bytes();
-        g.stacks[lane][level] = Frame {
-            word: word_out[lane] as u32,
-            mask,
-            remaining,
-            last,
-            _pad: 0,
-        };
+        // SAFETY: `frame_at_out[lane]` is `256 * lane + 8 * level` with
+        // `lane < W` and `level < LEVEL_SLOTS`: the frame of that level in
+        // that lane's stack (`Stack` is 256 bytes, `Frame` 8), written as
+        // the eight bytes of a `Frame` (`repr(C)`, plain integers).
+        unsafe {
+            stacks
+                .add(frame_at_out[lane] as usize)
+                .cast::<u64>()
+                .write_unaligned(frame_out[lane]);
+        }
         // A prefetch never faults: lanes without a child fetch some byte of
         // the file, and a wrong pointer just fetches a useless line.
         prefetch_address(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
@@ -1476,6 +1539,49 @@ mod tests {
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
+
+    /// The pointers the gathers read (`at <= fast_limit`) lie inside their
+    /// section, and their 32-bit loads inside the file, whatever lies after
+    /// the section; short levels followed by more of the file gather all
+    /// their pointers.
+    #[test]
+    fn gathered_pointers_stay_in_their_section_and_the_file() {
+        let mut rng = Rng(0x90);
+        for depth in [3u8, 6, 9, 13] {
+            let side = 1u64 << depth;
+            let cells: Vec<[u32; 3]> = (0..400)
+                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
+                .collect();
+            let built = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, cells)
+                .expect("valid voxels");
+            let bytes = built.to_bytes();
+            let dag = Dag::open(&bytes).expect("built DAG opens");
+            let tracer = Tracer::new(&dag).expect("tracer");
+            let s = Sections::new(&tracer).expect("small files are addressable");
+            let file_end = bytes.as_ptr() as usize + bytes.len();
+            for (l, level) in tracer.levels[..usize::from(tracer.leaf_level)]
+                .iter()
+                .enumerate()
+            {
+                let limit = i64::from(s.fast_limit[l]);
+                let (len, width) = (level.bytes.len() as i64, i64::from(level.width));
+                assert!(limit + width <= len, "level {l}: {limit} + {width} > {len}");
+                let last_byte = s.base as usize + s.offset[l] as usize + (limit + 4) as usize;
+                assert!(
+                    limit < 0 || last_byte <= file_end,
+                    "level {l} reads past the file"
+                );
+                let start = level.bytes.as_ptr() as usize;
+                if start + len as usize + 4 <= file_end {
+                    assert_eq!(
+                        limit,
+                        len - width,
+                        "level {l} sends pointers to the scalar path"
+                    );
+                }
+            }
+        }
+    }
 
     /// A float that is often one of the values the set-up treats specially.
     fn special(rng: &mut Rng, usual: f32) -> f32 {

@@ -147,6 +147,11 @@ fn record(fault: &mut Option<Fault>, f: Fault) -> u32 {
 #[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct Level<'a> {
     pub(crate) bytes: &'a [u8],
+    /// The file from the section's first byte to its end (`bytes` when the
+    /// section is not inside the file's bytes): where the vector lanes may
+    /// load 32 bits past the end of a short pointer at the end of the section,
+    /// masking the bytes that follow it away.
+    pub(crate) readable: &'a [u8],
     file_offset: u64,
     /// Pointer width in bytes (node levels).
     pub(crate) width: u32,
@@ -441,11 +446,20 @@ impl<'a> Tracer<'a> {
     /// nodes with saturated counts lead to a pointer outside their level.
     pub fn new(dag: &Dag<'a>) -> Result<Self, TraceError> {
         let depth = dag.header().depth;
+        let file = dag.bytes();
         let mut levels = [Level::default(); LEVEL_SLOTS];
         for (slot, section) in levels.iter_mut().zip(dag.levels()) {
             let width = u32::from(section.pointer_width);
+            // The section's place in the file, found by address (the reader
+            // hands out sub-slices of the file's bytes).
+            let start = (section.bytes.as_ptr() as usize).wrapping_sub(file.as_ptr() as usize);
+            let readable = match file.get(start..) {
+                Some(rest) if rest.len() >= section.bytes.len() => rest,
+                _ => section.bytes,
+            };
             *slot = Level {
                 bytes: section.bytes,
+                readable,
                 file_offset: section.file_offset,
                 width,
                 pointer_mask: if width >= 4 {

@@ -1328,7 +1328,6 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         let cz = _mm256_add_ps(pz, _mm256_and_ps(half, m[2]));
         // The frame of this node, to come back to: written below, lane by
         // lane (the lanes that choose no child write to the unused last slot).
-        sti!(word_out, word);
         let frame_bits = _mm256_or_si256(
             _mm256_or_si256(mask, _mm256_slli_epi32::<8>(remaining)),
             _mm256_slli_epi32::<16>(child),
@@ -1346,7 +1345,6 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             _mm256_permute2x128_si256::<0x31>(frames_a, frames_b)
         );
         let frame_level = blend(_mm256_set1_epi32(LEVEL_SLOTS as i32 - 1), level, choose);
-        sti!(level_out, frame_level);
         sti!(
             frame_at_out,
             _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(frame_level))
@@ -1393,9 +1391,13 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         let lanes = |v: __m256i| _mm256_movemask_ps(_mm256_castsi256_ps(v)) as u32;
         choose_bits = lanes(choose);
         slow_bits = lanes(_mm256_and_si256(cut, choose));
-        // Stored whether or not a lane needs it: cheaper than a branch that
-        // mispredicts.
-        sti!(rank_out, rank);
+        // Only for the scalar pointer reads, which are rare: at the end of
+        // the file, or outside a section (malformed files).
+        if slow_bits != 0 {
+            sti!(word_out, word);
+            sti!(level_out, frame_level);
+            sti!(rank_out, rank);
+        }
         done_bits = lanes(_mm256_or_si256(at_stop, at_top));
     }
 

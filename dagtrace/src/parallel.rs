@@ -14,8 +14,8 @@ const CHUNK: usize = 1024;
 const TASKS_PER_THREAD: usize = 8;
 
 /// The most rays handed to one rayon task. Every task ends with its vector
-/// lanes emptying one by one: at 1024 rays a task that cost d12 random rays
-/// 3.5 % more instructions than one batch, at 4096 about 0.9 %, while a
+/// lanes emptying one by one: with 1024 rays a task, that costs d12 random
+/// rays 3.5 % more instructions than one batch, with 4096 about 0.9 %; and a
 /// thread left without work at the end of a batch waits for at most one
 /// task (4096 random d12 rays: about 1 ms).
 const MAX_CHUNK: usize = 4096;

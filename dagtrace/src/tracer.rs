@@ -450,11 +450,16 @@ impl<'a> Tracer<'a> {
         let mut levels = [Level::default(); LEVEL_SLOTS];
         for (slot, section) in levels.iter_mut().zip(dag.levels()) {
             let width = u32::from(section.pointer_width);
-            // The section's place in the file, found by address (the reader
-            // hands out sub-slices of the file's bytes).
-            let start = (section.bytes.as_ptr() as usize).wrapping_sub(file.as_ptr() as usize);
-            let readable = match file.get(start..) {
-                Some(rest) if rest.len() >= section.bytes.len() => rest,
+            // The file from the section's offset on, where that is the
+            // section's own memory (the reader hands out sub-slices of the
+            // file's bytes).
+            let readable = match file.get(section.file_offset as usize..) {
+                Some(rest)
+                    if rest.as_ptr() == section.bytes.as_ptr()
+                        && rest.len() >= section.bytes.len() =>
+                {
+                    rest
+                }
                 _ => section.bytes,
             };
             *slot = Level {

@@ -13,7 +13,11 @@
 //! traces them as packets) and `random`.
 //!
 //! Measured per file and ray set, `--runs` times each, the runs of the
-//! different tracers alternating so that a busy machine slows them alike:
+//! different tracers alternating so that a busy machine slows them alike,
+//! and each timed run right after an untimed one of the same tracer, so that
+//! each is timed in its steady state (its own data in the caches, as when it
+//! traces frame after frame) rather than after the other tracer's data
+//! pushed its out:
 //! - `trace()`: [`Tracer::trace`] called ray by ray on one thread;
 //! - `1 core`: [`Tracer::trace_sequential_into`] on one thread (several rays in
 //!   flight, switching between them at every read of the DAG);
@@ -108,20 +112,23 @@ fn measure(rays: usize, f: &mut dyn FnMut()) -> (f64, f64) {
     (per_s(wall), per_s(cpu))
 }
 
-/// The rays/s of every tracer in `tracers` over `runs` alternating runs
-/// (after one warm-up call each): per tracer, the wall-clock and CPU-time
-/// rates of each run.
+/// The rays/s of every tracer in `tracers` over `runs` alternating runs,
+/// each timed call right after an untimed call of the same tracer: per
+/// tracer, the wall-clock and CPU-time rates of each run.
 fn alternate(
     runs: usize,
     rays: usize,
     tracers: &mut [&mut dyn FnMut()],
 ) -> Vec<(Vec<f64>, Vec<f64>)> {
-    for f in tracers.iter_mut() {
-        f();
-    }
     let mut rates = vec![(Vec::new(), Vec::new()); tracers.len()];
     for _ in 0..runs.max(1) {
         for (f, (walls, cpus)) in tracers.iter_mut().zip(&mut rates) {
+            // Without this, the all-cores runs of dagtrace came right after
+            // obvhs's (whose BVH and triangles evict most of a d12 DAG from
+            // a 32 MB L3) while its one-core runs came after its own
+            // `trace()` runs: d12 random rays on two cores 0.75–0.92 of the
+            // warm rate on machine D, obvhs 0.94–0.95.
+            f();
             let (wall, cpu) = measure(rays, *f);
             walls.push(wall);
             cpus.push(cpu);

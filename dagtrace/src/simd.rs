@@ -18,9 +18,9 @@
 //!   the node each ray goes to next is prefetched, so the memory latency of
 //!   one group's reads is spent on the other groups (32 reads in flight;
 //!   with two groups, d12 random rays took 7–8 % more time and d14 tiles
-//!   10 % more, for the same instructions, on an Intel
-//!   Xeon with 2 MB of L2 per core). DAGs small enough to stay in the caches
-//!   take two groups (`SMALL_DAG_GROUPS`): there more only cost bookkeeping.
+//!   10 % more, for the same instructions, on an Intel Xeon with 2 MB of L2
+//!   per core). DAGs small enough to stay in the caches take two groups
+//!   (`SMALL_DAG_GROUPS`): there more only cost bookkeeping.
 //! - Rays are set up four at a time in `f64` vectors ([`setup4`]), with the
 //!   very same operations as [`Tracer::setup`], when they are usual (full
 //!   depth, finite, no far origin, no direction component treated as zero).

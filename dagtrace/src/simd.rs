@@ -1403,7 +1403,8 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         done_bits = lanes(_mm256_or_si256(at_stop, at_top));
     }
 
-    // Scalar tail: frames and prefetches, then pointers near a section's end.
+    // Scalar tail: frames and prefetches, then the pointers the gather left
+    // (near the file's end, or outside their section in malformed files).
     let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
     for lane in 0..W {
         // SAFETY: `frame_at_out[lane]` is `256 * lane + 8 * level` with

@@ -28,6 +28,13 @@
 //! Every figure is the median over the runs: wall-clock rays/s, the rays/s
 //! in the thread's CPU time (one-thread figures; it leaves out time the thread
 //! spent descheduled), and the median of the per-run ratios dagtrace / obvhs.
+//!
+//! `--gathers both` times the batch API twice in every run, its vector lanes
+//! reading with the gather instruction and with scalar loads
+//! ([`dagtrace::Gathers`]), and adds the median of the per-run ratios of
+//! their times. For that comparison alone, many short runs without the mesh
+//! (`--only random --random 200000 --runs 101`) beat a few long ones on a
+//! noisy machine.
 //! The voxel tracer runs without the attribute index (closest hit: t, cell,
 //! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 
@@ -38,8 +45,8 @@ use clap::Parser;
 use dagfmt::Dag;
 use dagfmt::batch::{Hit, Ray};
 use dagfmt::mmap::MappedFile;
-use dagtrace::Tracer;
 use dagtrace::camera::Camera;
+use dagtrace::{Gathers, Tracer};
 use glam::Vec3A;
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -74,6 +81,35 @@ struct Args {
     /// Also compute the attribute index of every hit.
     #[arg(long)]
     index: bool,
+    /// How the vector lanes read eight rays' words at once: `auto` (the
+    /// tracer's choice for this processor), `instruction`, `loads`, or
+    /// `both` (each dagtrace batch figure twice, gather instruction then
+    /// scalar loads, all alternating in the same run).
+    #[arg(long, value_enum, default_value_t = GatherArg::Auto)]
+    gathers: GatherArg,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum GatherArg {
+    Auto,
+    Instruction,
+    Loads,
+    Both,
+}
+
+impl GatherArg {
+    /// The tracer settings to time, with their names.
+    fn modes(self) -> Vec<(Gathers, &'static str)> {
+        match self {
+            GatherArg::Auto => vec![(Gathers::Auto, "")],
+            GatherArg::Instruction => vec![(Gathers::Instruction, "")],
+            GatherArg::Loads => vec![(Gathers::ScalarLoads, "")],
+            GatherArg::Both => vec![
+                (Gathers::Instruction, " [gather instruction]"),
+                (Gathers::ScalarLoads, " [scalar loads]"),
+            ],
+        }
+    }
 }
 
 fn main() {
@@ -271,13 +307,23 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
     let tracer = Tracer::new(&dag)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
+    let modes = args.gathers.modes();
+    let tracers: Vec<(Tracer, &str)> = modes
+        .iter()
+        .map(|&(g, name)| (tracer.clone().with_gathers(g), name))
+        .collect();
     let header = dag.header();
     println!(
-        "{}: depth {}, {} voxels, {} bytes",
+        "{}: depth {}, {} voxels, {} bytes; vector lanes read with {}",
         path.display(),
         header.depth,
         header.voxel_count,
         header.file_size,
+        match args.gathers {
+            GatherArg::Both => "the gather instruction and with scalar loads, in turn",
+            _ if tracers[0].0.gathers() == Gathers::ScalarLoads => "scalar loads",
+            _ => "the gather instruction",
+        }
     );
     let camera = Camera::automatic(&dag, f64::from(args.width) / f64::from(args.height))
         .frame()
@@ -307,7 +353,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             continue;
         }
         let n = rays.len();
-        let mut hits = vec![Hit::MISS; n];
+        let mut mode_hits = vec![vec![Hit::MISS; n]; tracers.len()];
         let mut single_hits = vec![Hit::MISS; n];
         let mut ts = vec![0f32; n];
         let mut mesh_ts = vec![0f32; n];
@@ -321,11 +367,18 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
                 }
             }
         };
-        let mut sequential = || {
-            if let Err(e) = tracer.trace_sequential_into(rays, &mut hits) {
-                eprintln!("trace_bench: {e}");
-            }
-        };
+        // Each tracer setting writes its own hits (compared below).
+        let mut sequential: Vec<_> = tracers
+            .iter()
+            .zip(mode_hits.iter_mut())
+            .map(|((tracer, _), hits)| {
+                move || {
+                    if let Err(e) = tracer.trace_sequential_into(rays, hits) {
+                        eprintln!("trace_bench: {e}");
+                    }
+                }
+            })
+            .collect();
         let mut mesh_one = || {
             if let Some(mesh) = mesh {
                 for (ray, t) in rays.iter().zip(ts.iter_mut()) {
@@ -333,17 +386,31 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
                 }
             }
         };
-        let one = alternate(
-            args.runs,
-            n,
-            &mut [&mut single, &mut sequential, &mut mesh_one],
-        );
-        // All threads.
-        let mut batch = || {
-            if let Err(e) = tracer.trace_batch_into(rays, &mut hits) {
-                eprintln!("trace_bench: {e}");
-            }
+        // trace(), the batch API in each setting, obvhs.
+        let one = {
+            let mut timed: Vec<&mut dyn FnMut()> = vec![&mut single];
+            timed.extend(sequential.iter_mut().map(|f| f as &mut dyn FnMut()));
+            timed.push(&mut mesh_one);
+            alternate(args.runs, n, &mut timed)
         };
+        drop(sequential);
+        for mode in &mode_hits {
+            if *mode != single_hits {
+                return Err("trace() and trace_sequential_into() answer differently".into());
+            }
+        }
+        // All threads.
+        let mut batch: Vec<_> = tracers
+            .iter()
+            .zip(mode_hits.iter_mut())
+            .map(|((tracer, _), hits)| {
+                move || {
+                    if let Err(e) = tracer.trace_batch_into(rays, hits) {
+                        eprintln!("trace_bench: {e}");
+                    }
+                }
+            })
+            .collect();
         let mut mesh_all = || {
             if let Some(mesh) = mesh {
                 mesh_ts
@@ -356,33 +423,55 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
                     });
             }
         };
-        let all = alternate(args.runs, n, &mut [&mut batch, &mut mesh_all]);
+        let all = {
+            let mut timed: Vec<&mut dyn FnMut()> =
+                batch.iter_mut().map(|f| f as &mut dyn FnMut()).collect();
+            timed.push(&mut mesh_all);
+            alternate(args.runs, n, &mut timed)
+        };
+        drop(batch);
         if let Some(e) = failed {
             return Err(e.to_string());
         }
-        if hits != single_hits {
-            return Err("trace() and trace_sequential_into() answer differently".into());
+        if mode_hits.iter().any(|mode| *mode != single_hits) {
+            return Err("trace() and trace_batch_into() answer differently".into());
         }
+        let hits = &single_hits;
         let hit_count = hits.iter().filter(|h| h.hit).count();
         let m = |v: &Vec<f64>| mrays(median(v.clone()));
-        println!(
-            "{name:>18}  dagtrace trace() 1 thread {} / {}   1 core {} / {}   all cores {}   ({:.1}% hit)",
-            m(&one[0].0),
-            m(&one[0].1),
-            m(&one[1].0),
-            m(&one[1].1),
-            m(&all[0].0),
-            100.0 * hit_count as f64 / n as f64
-        );
+        // Rates: `one` is trace(), then each setting, then obvhs; `all` each
+        // setting, then obvhs.
+        let modes = tracers.len();
+        for (k, (_, mode)) in tracers.iter().enumerate() {
+            println!(
+                "{name:>18}  dagtrace trace() 1 thread {} / {}   1 core {} / {}   all cores {}   ({:.1}% hit){mode}",
+                m(&one[0].0),
+                m(&one[0].1),
+                m(&one[1 + k].0),
+                m(&one[1 + k].1),
+                m(&all[k].0),
+                100.0 * hit_count as f64 / n as f64
+            );
+        }
+        if modes == 2 {
+            // Time with scalar loads over time with the gather instruction.
+            println!(
+                "{name:>18}  scalar loads / gather instruction, time: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
+                ratio(&one[1].0, &one[2].0),
+                ratio(&one[1].1, &one[2].1),
+                ratio(&all[0].0, &all[1].0),
+            );
+        }
         if mesh.is_none() {
             continue;
         }
+        let (mesh_one, mesh_all) = (&one[1 + modes], &all[modes]);
         let mesh_hits = ts.iter().filter(|t| t.is_finite()).count();
         println!(
             "{name:>18}  obvhs CWBVH                               1 core {} / {}   all cores {}   ({:.1}% hit)",
-            m(&one[2].0),
-            m(&one[2].1),
-            m(&all[1].0),
+            m(&mesh_one.0),
+            m(&mesh_one.1),
+            m(&mesh_all.0),
             100.0 * mesh_hits as f64 / n as f64
         );
         // Agreement: rays hitting both, and how far apart the hits are in voxels.
@@ -395,16 +484,18 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             .collect();
         gaps.sort_by(f64::total_cmp);
         let both = gaps.len();
-        println!(
-            "{name:>18}  speed-up x   trace() {:5.2}x / {:5.2}x          1 core {:5.2}x / {:5.2}x  all cores {:5.2}x   (hit both: {both}; |t_mesh - t_voxel| median {:.2}, p99 {:.2} voxels)",
-            ratio(&one[0].0, &one[2].0),
-            ratio(&one[0].1, &one[2].1),
-            ratio(&one[1].0, &one[2].0),
-            ratio(&one[1].1, &one[2].1),
-            ratio(&all[0].0, &all[1].0),
-            gaps.get(both / 2).copied().unwrap_or(f64::NAN),
-            gaps.get(both * 99 / 100).copied().unwrap_or(f64::NAN),
-        );
+        for (k, (_, mode)) in tracers.iter().enumerate() {
+            println!(
+                "{name:>18}  speed-up x   trace() {:5.2}x / {:5.2}x          1 core {:5.2}x / {:5.2}x  all cores {:5.2}x   (hit both: {both}; |t_mesh - t_voxel| median {:.2}, p99 {:.2} voxels){mode}",
+                ratio(&one[0].0, &mesh_one.0),
+                ratio(&one[0].1, &mesh_one.1),
+                ratio(&one[1 + k].0, &mesh_one.0),
+                ratio(&one[1 + k].1, &mesh_one.1),
+                ratio(&all[k].0, &mesh_all.0),
+                gaps.get(both / 2).copied().unwrap_or(f64::NAN),
+                gaps.get(both * 99 / 100).copied().unwrap_or(f64::NAN),
+            );
+        }
     }
     Ok(())
 }

@@ -35,4 +35,4 @@ mod tables;
 mod tracer;
 
 pub use dagfmt::batch::{Hit, Ray};
-pub use tracer::{TraceError, Tracer};
+pub use tracer::{Gathers, TraceError, Tracer};

@@ -26,6 +26,12 @@
 //!   depth, finite, no far origin, no direction component treated as zero).
 //! - The line of the hit of the ray 64 rays on is prefetched for writing
 //!   whenever a ray is handed out (`HITS_AHEAD`).
+//! - The six reads of eight lanes' words a step (header, two stack words,
+//!   `CHAIN` and `FIRST` entries, pointer) are AVX2 gather instructions, or,
+//!   on processors whose gathers are microcoded and slow (AMD's Zen 1 and 2:
+//!   [`slow_gathers`]), eight scalar loads put together ([`gather`],
+//!   [`crate::Gathers`]). Both are compiled (`run`'s `LOADS`), and the tests
+//!   check both on every processor with AVX2.
 //! - What is rare or branchy stays scalar, done by the tracer's own functions
 //!   for one ray at a time: the set-up of unusual rays ([`Tracer::begin`]),
 //!   the 4³ brick at the end of a descent ([`Tracer::brick`]), the answer
@@ -108,6 +114,38 @@ fn detect() -> bool {
         && std::is_x86_feature_detected!("fma");
     AVAILABLE.store(1 + u8::from(yes), std::sync::atomic::Ordering::Relaxed);
     yes
+}
+
+/// Whether this processor's gather instructions are slow enough that the
+/// vector lanes read faster with scalar loads ([`crate::Gathers::Auto`]):
+/// AMD's family 17h (Zen, Zen+ and Zen 2) and Hygon's family 18h (built on
+/// Zen). Their `vpgatherdd` of eight 32-bit words is microcoded: on a Zen 1
+/// EPYC it took 20–30 cycles a gather where eight loads put together took
+/// 6–10 (microbenchmark, README). Zen 3 and later and Intel's cores gather
+/// faster, and keep the instruction.
+pub(crate) fn slow_gathers() -> bool {
+    // (`cpuid` exists on every x86-64 processor; leaves 0 and 1 always do.)
+    let (vendor, signature) = (__cpuid(0), __cpuid(1));
+    let mut name = [0u8; 12];
+    name[..4].copy_from_slice(&vendor.ebx.to_le_bytes());
+    name[4..8].copy_from_slice(&vendor.edx.to_le_bytes());
+    name[8..].copy_from_slice(&vendor.ecx.to_le_bytes());
+    slow_gathers_on(&name, signature.eax)
+}
+
+/// [`slow_gathers`] for the processor with vendor string `vendor` (cpuid
+/// leaf 0) and signature `eax` (leaf 1).
+fn slow_gathers_on(vendor: &[u8; 12], eax: u32) -> bool {
+    let base_family = (eax >> 8) & 0xf;
+    let family = if base_family == 0xf {
+        base_family + ((eax >> 20) & 0xff)
+    } else {
+        base_family
+    };
+    matches!(
+        (vendor, family),
+        (b"AuthenticAMD", 0x17) | (b"HygonGenuine", 0x18)
+    )
 }
 
 /// Entries of the per-level tables: three vectors, more than the most
@@ -305,53 +343,56 @@ pub(crate) fn trace_lanes(
 
 /// [`trace_lanes`] without the scalar fallback.
 fn try_trace_lanes(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> Result<(), Abandon> {
-    try_trace_lanes_with(tracer, rays, hits, tracer.small)
+    try_trace_lanes_with(tracer, rays, hits, tracer.small, tracer.gather_loads)
 }
 
-/// [`try_trace_lanes`] with the small DAGs' number of groups or the others'.
+/// [`try_trace_lanes`] with the small DAGs' number of groups or the others'
+/// (`small`), reading with gather instructions or scalar loads (`loads`).
 fn try_trace_lanes_with(
     tracer: &Tracer<'_>,
     rays: &[Ray],
     hits: &mut [Hit],
     small: bool,
+    loads: bool,
 ) -> Result<(), Abandon> {
     let sections = Sections::new(tracer).ok_or(Abandon)?;
     // SAFETY: only called where `available()` found the features.
     unsafe {
-        if small {
-            let mut groups = [Group::default(); SMALL_DAG_GROUPS];
-            run(tracer, &sections, &mut groups, rays, hits)
-        } else {
-            let mut groups = [Group::default(); GROUPS];
-            run(tracer, &sections, &mut groups, rays, hits)
+        match (small, loads) {
+            (true, false) => run::<SMALL_DAG_GROUPS, false>(tracer, &sections, rays, hits),
+            (true, true) => run::<SMALL_DAG_GROUPS, true>(tracer, &sections, rays, hits),
+            (false, false) => run::<GROUPS, false>(tracer, &sections, rays, hits),
+            (false, true) => run::<GROUPS, true>(tracer, &sections, rays, hits),
         }
     }
 }
 
 /// [`trace_lanes`] without the scalar fallback, with the small DAGs' number
-/// of groups or the others' (`small`) whatever the DAG's size: `false` when
-/// the vector traversal gave up (on valid DAGs it never should).
+/// of groups or the others' (`small`) whatever the DAG's size, and gather
+/// instructions or scalar loads (`loads`) whatever the tracer's choice:
+/// `false` when the vector traversal gave up (on valid DAGs it never should).
 #[cfg(test)]
 pub(crate) fn trace_lanes_or_give_up(
     tracer: &Tracer<'_>,
     rays: &[Ray],
     hits: &mut [Hit],
     small: bool,
+    loads: bool,
 ) -> bool {
-    try_trace_lanes_with(tracer, rays, hits, small).is_ok()
+    try_trace_lanes_with(tracer, rays, hits, small, loads).is_ok()
 }
 
 /// The vector traversal of `rays` into `hits`: the groups step in turn, and
 /// between their steps the lanes they flagged get their scalar work (a brick
 /// test, an answer, a new ray). `Err` when a fault or an error stopped it.
 #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
-unsafe fn run<const G: usize>(
+unsafe fn run<const G: usize, const LOADS: bool>(
     tracer: &Tracer<'_>,
     sections: &Sections,
-    groups: &mut [Group; G],
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
+    let mut groups = [Group::default(); G];
     let count = rays.len().min(hits.len());
     let mut ahead = Ahead::default();
     // Per group: the lanes that need scalar work (an answer, a brick, a new ray).
@@ -424,7 +465,7 @@ unsafe fn run<const G: usize>(
                 0
             } else {
                 // SAFETY: `trace_lanes` is only called where `available()` found AVX2.
-                unsafe { step(tracer, sections, group) }?
+                unsafe { step::<LOADS>(tracer, sections, group) }?
             };
         }
         if busy.iter().all(|&b| b == 0) {
@@ -1146,7 +1187,11 @@ macro_rules! sti {
 /// The processor must have AVX2.
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, Abandon> {
+unsafe fn step<const LOADS: bool>(
+    tracer: &Tracer<'_>,
+    s: &Sections,
+    g: &mut Group,
+) -> Result<u32, Abandon> {
     let g_ptr: *mut Group = g;
     let mut word_out = [0i32; W];
     // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
@@ -1165,7 +1210,10 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
     // before (headers: `target < len / 4`; pointers: `at <= fast_limit`, so
     // the four bytes lie in the file's bytes, `Level::readable`), at
     // offsets from `s.base` that `Sections::new` checked to address the
-    // sections.
+    // sections. With scalar loads (`LOADS`) the other lanes read the first
+    // four bytes at each gather's base instead: the first section's first
+    // node or leaf (`s.base` is the start of a non-empty section, and nodes
+    // and leaves are at least four bytes), a lane's stack, or a table.
     unsafe {
         let g = &mut *g_ptr;
         let zero = _mm256_setzero_si256();
@@ -1191,7 +1239,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         if _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(inside, visit))) != 0 {
             return Err(Abandon);
         }
-        let header = _mm256_mask_i32gather_epi32::<1>(
+        let header = gather::<LOADS>(
             zero,
             base,
             _mm256_add_epi32(by_level(&offsets, level), _mm256_slli_epi32::<2>(target)),
@@ -1234,7 +1282,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
             _mm256_or_si256(bits3(le_enter), _mm256_slli_epi32::<3>(bits3(crossing))),
             _mm256_slli_epi32::<6>(bits3(order)),
         );
-        let chain = table_bytes(
+        let chain = table_bytes::<LOADS>(
             &CHAIN_PADDED,
             _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
             visit,
@@ -1268,8 +1316,8 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         const _: () = assert!(std::mem::size_of::<Frame>() == 8);
         let frame_at = _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(level));
         let stacks: *const i32 = g.stacks.as_ptr().cast();
-        word = _mm256_mask_i32gather_epi32::<1>(word, stacks, frame_at, pop);
-        let f_bits = _mm256_mask_i32gather_epi32::<1>(zero, stacks.add(1), frame_at, pop);
+        word = gather::<LOADS>(word, stacks, frame_at, pop);
+        let f_bits = gather::<LOADS>(zero, stacks.add(1), frame_at, pop);
         mask = blend(mask, _mm256_and_si256(f_bits, byte), pop);
         remaining = blend(
             remaining,
@@ -1291,7 +1339,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
 
         // The next child, front to back, and its pointer.
         let choose = _mm256_andnot_si256(at_top, active);
-        let child = table_bytes(
+        let child = table_bytes::<LOADS>(
             &FIRST_PADDED,
             _mm256_or_si256(_mm256_slli_epi32::<8>(neg), remaining),
             choose,
@@ -1316,7 +1364,7 @@ unsafe fn step(tracer: &Tracer<'_>, s: &Sections, g: &mut Group) -> Result<u32, 
         let cut = _mm256_cmpgt_epi32(at, fast_limit);
         let fast = _mm256_andnot_si256(cut, choose);
         let pointer = _mm256_and_si256(
-            _mm256_mask_i32gather_epi32::<1>(
+            gather::<LOADS>(
                 zero,
                 base,
                 _mm256_add_epi32(by_level(&offsets, level), at),
@@ -1480,12 +1528,67 @@ fn by_level(table: &[__m256i; 3], level: __m256i) -> __m256i {
 /// of `lanes` (the gather loads 32 bits; the tables are padded for it).
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn table_bytes(table: &[u8], index: __m256i, lanes: __m256i) -> __m256i {
+unsafe fn table_bytes<const LOADS: bool>(table: &[u8], index: __m256i, lanes: __m256i) -> __m256i {
     let zero = _mm256_setzero_si256();
     // SAFETY: the caller keeps the loads of the lanes in `lanes` inside the table.
-    let words =
-        unsafe { _mm256_mask_i32gather_epi32::<1>(zero, table.as_ptr().cast(), index, lanes) };
+    let words = unsafe { gather::<LOADS>(zero, table.as_ptr().cast(), index, lanes) };
     _mm256_and_si256(words, _mm256_set1_epi32(0xff))
+}
+
+/// The 32-bit words at byte offsets `offsets` from `base` in the lanes of
+/// `lanes`, `src`'s in the others: `_mm256_mask_i32gather_epi32::<1>`, or,
+/// where `LOADS`, eight scalar loads put together (see
+/// [`crate::Gathers::ScalarLoads`]).
+///
+/// # Safety
+///
+/// The processor must have AVX2. The four bytes at `base + offset` must be
+/// readable for the offsets of the lanes in `lanes`, and, where `LOADS`, the
+/// four bytes at `base` itself (the other lanes load those).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn gather<const LOADS: bool>(
+    src: __m256i,
+    base: *const i32,
+    offsets: __m256i,
+    lanes: __m256i,
+) -> __m256i {
+    if !LOADS {
+        // SAFETY: the caller keeps the reads of the lanes in `lanes` readable.
+        return unsafe { _mm256_mask_i32gather_epi32::<1>(src, base, offsets, lanes) };
+    }
+    // The offsets two to a 64-bit word, out of the vector by register moves
+    // (a store and eight loads of the offsets took longer).
+    let at = _mm256_and_si256(offsets, lanes);
+    let (lo, hi) = (
+        _mm256_castsi256_si128(at),
+        _mm256_extracti128_si256::<1>(at),
+    );
+    let pairs = [
+        _mm_cvtsi128_si64(lo) as u64,
+        _mm_extract_epi64::<1>(lo) as u64,
+        _mm_cvtsi128_si64(hi) as u64,
+        _mm_extract_epi64::<1>(hi) as u64,
+    ];
+    let base: *const u8 = base.cast();
+    // SAFETY: the caller keeps these four bytes readable: those of a lane in
+    // `lanes`, or `base` itself for the others (their offsets are masked to 0).
+    let word = |offset: u64| unsafe {
+        base.add(offset as u32 as usize)
+            .cast::<i32>()
+            .read_unaligned()
+    };
+    let words = _mm256_setr_epi32(
+        word(pairs[0]),
+        word(pairs[0] >> 32),
+        word(pairs[1]),
+        word(pairs[1] >> 32),
+        word(pairs[2]),
+        word(pairs[2] >> 32),
+        word(pairs[3]),
+        word(pairs[3] >> 32),
+    );
+    blend(src, words, lanes)
 }
 
 /// `a < b` as unsigned 32-bit integers.
@@ -1544,6 +1647,27 @@ mod tests {
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
+
+    /// The processors whose gathers the lanes replace by scalar loads, by
+    /// their cpuid signatures (leaf 1, eax).
+    #[test]
+    fn slow_gathers_are_amd_family_17h_and_hygon() {
+        let (amd, intel, hygon) = (b"AuthenticAMD", b"GenuineIntel", b"HygonGenuine");
+        for (vendor, eax, slow, what) in [
+            (amd, 0x0080_0f12, true, "EPYC 7001, Zen"),
+            (amd, 0x0080_0f82, true, "Ryzen 2000, Zen+"),
+            (amd, 0x0083_0f10, true, "EPYC 7002, Zen 2"),
+            (amd, 0x00a0_0f11, false, "EPYC 7003, Zen 3"),
+            (amd, 0x00a1_0f11, false, "EPYC 9004, Zen 4"),
+            (amd, 0x00b0_0f20, false, "Zen 5"),
+            (amd, 0x0060_0f20, false, "family 15h, Bulldozer line"),
+            (hygon, 0x0090_0f11, true, "Hygon Dhyana"),
+            (intel, 0x0005_0654, false, "Xeon, Skylake-SP"),
+            (intel, 0x0006_06a6, false, "Xeon, Ice Lake-SP"),
+        ] {
+            assert_eq!(slow_gathers_on(vendor, eax), slow, "{what}");
+        }
+    }
 
     /// The pointers the gathers read (`at <= fast_limit`) lie inside their
     /// section, and their 32-bit loads inside the file, whatever lies after

@@ -407,6 +407,42 @@ struct Found {
     leaf: u32,
 }
 
+/// How the batch API's vector lanes (processors with AVX2) read the words of
+/// eight rays at once: node headers, child pointers, stack frames and table
+/// entries ([`Tracer::with_gathers`]). The answers are identical; the speed
+/// is not.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Gathers {
+    /// [`Gathers::ScalarLoads`] on processors whose gather instructions are
+    /// known to be slow (AMD Zen, Zen+ and Zen 2, Hygon Dhyana), else
+    /// [`Gathers::Instruction`].
+    #[default]
+    Auto,
+    /// AVX2's gather instruction (`vpgatherdd`), one for eight words.
+    Instruction,
+    /// Eight scalar loads put together into a vector.
+    ScalarLoads,
+}
+
+impl Gathers {
+    /// Whether the lanes read with scalar loads.
+    fn loads(self) -> bool {
+        match self {
+            Gathers::Instruction => false,
+            Gathers::ScalarLoads => true,
+            Gathers::Auto => {
+                #[cfg(target_arch = "x86_64")]
+                {
+                    static SLOW: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+                    *SLOW.get_or_init(crate::simd::slow_gathers)
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                false
+            }
+        }
+    }
+}
+
 /// A ray tracer over one DAG. Cheap to share between threads (`Sync`).
 ///
 /// It borrows the file's bytes (zero-copy); the only thing computed when it is
@@ -432,6 +468,9 @@ pub struct Tracer<'a> {
     pub(crate) packets: bool,
     /// Whether the DAG has at most [`SMALL_DAG_BYTES`].
     pub(crate) small: bool,
+    /// Whether the vector lanes read with scalar loads rather than gather
+    /// instructions ([`Gathers`], resolved).
+    pub(crate) gather_loads: bool,
     colors: Option<&'a [u8]>,
     /// Level of the cells whose union `bounds` encloses.
     bounds_level: u8,
@@ -497,6 +536,7 @@ impl<'a> Tracer<'a> {
             compute_index: true,
             packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
             small: dag_bytes <= SMALL_DAG_BYTES,
+            gather_loads: Gathers::Auto.loads(),
             colors: dag.colors(),
             bounds_level: 0,
             bounds: [(Vec3A::ZERO, Vec3A::splat((1u32 << depth) as f32)); 8],
@@ -568,6 +608,24 @@ impl<'a> Tracer<'a> {
     pub fn with_index(mut self, compute_index: bool) -> Self {
         self.compute_index = compute_index;
         self
+    }
+
+    /// How the batch API's vector lanes read the nodes of eight rays at once
+    /// (default [`Gathers::Auto`]). The answers are the same either way; only
+    /// the speed differs, by processor.
+    pub fn with_gathers(mut self, gathers: Gathers) -> Self {
+        self.gather_loads = gathers.loads();
+        self
+    }
+
+    /// How the batch API's vector lanes read: [`Gathers::Instruction`] or
+    /// [`Gathers::ScalarLoads`] (what [`Gathers::Auto`] chose, where set so).
+    pub fn gathers(&self) -> Gathers {
+        if self.gather_loads {
+            Gathers::ScalarLoads
+        } else {
+            Gathers::Instruction
+        }
     }
 
     /// Depth D of the DAG.
@@ -2001,15 +2059,27 @@ pub(crate) mod tests {
         }
         #[cfg(target_arch = "x86_64")]
         if crate::simd::available() {
-            // Both numbers of groups in flight, whatever the DAG's size.
+            // Both numbers of groups in flight, whatever the DAG's size, and
+            // both ways of gathering, whatever the processor.
             for small in [true, false] {
-                let mut vector = vec![Hit::MISS; rays.len()];
-                assert!(
-                    crate::simd::trace_lanes_or_give_up(tracer, rays, &mut vector, small),
-                    "the vector lanes gave up on a valid DAG"
-                );
-                for ((ray, a), b) in rays.iter().zip(&single).zip(&vector) {
-                    assert_eq!(a, b, "vector lanes (small DAG groups: {small}): {ray:?}");
+                for loads in [false, true] {
+                    let mut vector = vec![Hit::MISS; rays.len()];
+                    assert!(
+                        crate::simd::trace_lanes_or_give_up(
+                            tracer,
+                            rays,
+                            &mut vector,
+                            small,
+                            loads
+                        ),
+                        "the vector lanes gave up on a valid DAG"
+                    );
+                    for ((ray, a), b) in rays.iter().zip(&single).zip(&vector) {
+                        assert_eq!(
+                            a, b,
+                            "vector lanes (small DAG groups: {small}, scalar loads: {loads}): {ray:?}"
+                        );
+                    }
                 }
             }
         } else {

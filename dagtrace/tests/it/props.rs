@@ -3,7 +3,7 @@
 
 use dagfmt::batch::Ray;
 use dagfmt::{AttributeKind, Dag};
-use dagtrace::Tracer;
+use dagtrace::{Gathers, Tracer};
 use proptest::prelude::*;
 
 use crate::common::{Rng, build};
@@ -162,6 +162,16 @@ fn check_scene(
         .map(|_| random_ray(depth, &voxels, root_min, root_size, &mut rng))
         .collect();
     let hits = tracer.trace_batch(&rays).expect("valid DAG traces");
+    // Both ways the vector lanes can read (the default picks one by
+    // processor) answer alike.
+    for gathers in [Gathers::Instruction, Gathers::ScalarLoads] {
+        let other = tracer
+            .clone()
+            .with_gathers(gathers)
+            .trace_batch(&rays)
+            .expect("valid DAG traces");
+        prop_assert!(other == hits, "{gathers:?} answers differently");
+    }
     for (ray, hit) in rays.iter().zip(&hits) {
         if let Err(why) = reference.check(ray, hit) {
             return Err(TestCaseError::fail(format!(

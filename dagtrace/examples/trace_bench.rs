@@ -28,6 +28,8 @@
 //! Every figure is the median over the runs: wall-clock rays/s, the rays/s
 //! in the thread's CPU time (one-thread figures; it leaves out time the thread
 //! spent descheduled), and the median of the per-run ratios dagtrace / obvhs.
+//! The voxel tracer runs without the attribute index (closest hit: t, cell,
+//! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 //!
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
@@ -35,8 +37,6 @@
 //! their times. For that comparison alone, many short runs without the mesh
 //! (`--only random --random 200000 --runs 101`) beat a few long ones on a
 //! noisy machine.
-//! The voxel tracer runs without the attribute index (closest hit: t, cell,
-//! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -441,7 +441,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
         let m = |v: &Vec<f64>| mrays(median(v.clone()));
         // Rates: `one` is trace(), then each setting, then obvhs; `all` each
         // setting, then obvhs.
-        let modes = tracers.len();
+        let settings = tracers.len();
         for (k, (_, mode)) in tracers.iter().enumerate() {
             println!(
                 "{name:>18}  dagtrace trace() 1 thread {} / {}   1 core {} / {}   all cores {}   ({:.1}% hit){mode}",
@@ -453,7 +453,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
                 100.0 * hit_count as f64 / n as f64
             );
         }
-        if modes == 2 {
+        if settings == 2 {
             // Time with scalar loads over time with the gather instruction.
             println!(
                 "{name:>18}  scalar loads / gather instruction, time: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
@@ -465,7 +465,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
         if mesh.is_none() {
             continue;
         }
-        let (mesh_one, mesh_all) = (&one[1 + modes], &all[modes]);
+        let (mesh_one, mesh_all) = (&one[1 + settings], &all[settings]);
         let mesh_hits = ts.iter().filter(|t| t.is_finite()).count();
         println!(
             "{name:>18}  obvhs CWBVH                               1 core {} / {}   all cores {}   ({:.1}% hit)",

@@ -173,6 +173,30 @@ fn alternate(
     rates
 }
 
+/// [`Tracer::trace_sequential_into`] or [`Tracer::trace_batch_into`].
+type BatchApi<'t> = fn(&Tracer<'t>, &[Ray], &mut [Hit]) -> Result<(), dagtrace::TraceError>;
+
+/// Per tracer setting, a call of `trace` (a batch API) that traces `rays`
+/// into that setting's own hits (compared with `trace()`'s afterwards).
+fn per_setting<'a, 't: 'a>(
+    tracers: &'a [(Tracer<'t>, &str)],
+    rays: &'a [Ray],
+    hits: &'a mut [Vec<Hit>],
+    trace: BatchApi<'t>,
+) -> Vec<impl FnMut() + 'a> {
+    tracers
+        .iter()
+        .zip(hits.iter_mut())
+        .map(move |((tracer, _), hits)| {
+            move || {
+                if let Err(e) = trace(tracer, rays, hits) {
+                    eprintln!("trace_bench: {e}");
+                }
+            }
+        })
+        .collect()
+}
+
 /// Median of the per-run ratios `a[i] / b[i]`.
 fn ratio(a: &[f64], b: &[f64]) -> f64 {
     median(a.iter().zip(b).map(|(a, b)| a / b).collect())
@@ -367,18 +391,12 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
                 }
             }
         };
-        // Each tracer setting writes its own hits (compared below).
-        let mut sequential: Vec<_> = tracers
-            .iter()
-            .zip(mode_hits.iter_mut())
-            .map(|((tracer, _), hits)| {
-                move || {
-                    if let Err(e) = tracer.trace_sequential_into(rays, hits) {
-                        eprintln!("trace_bench: {e}");
-                    }
-                }
-            })
-            .collect();
+        let mut sequential = per_setting(
+            &tracers,
+            rays,
+            &mut mode_hits,
+            Tracer::trace_sequential_into,
+        );
         let mut mesh_one = || {
             if let Some(mesh) = mesh {
                 for (ray, t) in rays.iter().zip(ts.iter_mut()) {
@@ -400,17 +418,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             }
         }
         // All threads.
-        let mut batch: Vec<_> = tracers
-            .iter()
-            .zip(mode_hits.iter_mut())
-            .map(|((tracer, _), hits)| {
-                move || {
-                    if let Err(e) = tracer.trace_batch_into(rays, hits) {
-                        eprintln!("trace_bench: {e}");
-                    }
-                }
-            })
-            .collect();
+        let mut batch = per_setting(&tracers, rays, &mut mode_hits, Tracer::trace_batch_into);
         let mut mesh_all = || {
             if let Some(mesh) = mesh {
                 mesh_ts

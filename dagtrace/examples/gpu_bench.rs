@@ -8,8 +8,8 @@
 //! upload + shader + one ray), then rays per second (median of the runs) for
 //! primary rays of a WxH image (default 1920x1080: made and traced on the GPU,
 //! an RGBA image written) and for random rays (prepared on the host, traced,
-//! read back), with the full and the short stack, and the same rays on the
-//! CPU tracer (all cores).
+//! read back; and the host part of the call: set-up and answers), with the
+//! full and the short stack, and the same rays on the CPU tracer (all cores).
 
 #[cfg(feature = "gpu")]
 fn main() {
@@ -244,17 +244,20 @@ mod bench {
             for (name, tracer) in &tracers {
                 let mut gpu = Vec::new();
                 let mut total = Vec::new();
+                let mut host = Vec::new();
                 let mut iterations = 0.0;
                 for _ in 0..args.runs {
                     let (_, stats) = tracer.trace_with_stats(&rays).map_err(|e| e.to_string())?;
                     gpu.push(stats.gpu_time);
                     total.push(stats.total_time);
+                    host.push(stats.total_time.saturating_sub(stats.gpu_time));
                     iterations = stats.iterations as f64 / stats.gpu_rays.max(1) as f64;
                 }
                 println!(
-                    "  {name}: {} / {} ({:.1} loop iterations per traced ray)",
+                    "  {name}: {} / {} (host part {:.1} ms; {:.1} loop iterations per traced ray)",
                     rate(rays.len(), median(gpu)),
                     rate(rays.len(), median(total)),
+                    median(host).as_secs_f64() * 1e3,
                     iterations
                 );
             }

@@ -46,6 +46,7 @@ mod prepare;
 mod upload;
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -61,10 +62,21 @@ use layout::{
     BATCH_WORKGROUP_SIZE, BINDING_HITS, BINDING_IMAGE, BINDING_PARAMS, BINDING_RAYS, GpuHit,
     GpuParams, GpuRay, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_LEVEL_SHIFT, INFO_MALFORMED,
     IO_STORAGE_BUFFERS, MAX_PAGES, MAX_STORED_LEVELS, OPTION_INDEX, OPTION_WRITE_HITS,
-    OPTION_WRITE_IMAGE, RENDER_TILE, ShaderConfig,
+    OPTION_WRITE_IMAGE, RAY_SKIP, RENDER_TILE, ShaderConfig,
 };
 use prepare::{Frame, Setup};
 use upload::Placement;
+
+/// What the shader gets for a ray answered on the host: it writes an empty
+/// record for it and does nothing else.
+const SKIPPED_RAY: GpuRay = GpuRay {
+    origin: [0.0; 4],
+    inv_dir: [0.0; 4],
+    octant: 0,
+    level: 0,
+    flags: RAY_SKIP,
+    pad0: 0,
+};
 
 /// Why the GPU tracer cannot do what was asked.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -385,7 +397,11 @@ impl GpuContext {
     }
 
     /// Reads `size` bytes of `buffer` (which must have `COPY_SRC`) back to the host.
-    fn read_back(&self, buffer: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, GpuError> {
+    fn read_back<T: bytemuck::Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        size: u64,
+    ) -> Result<Vec<T>, GpuError> {
         let device = &self.inner.device;
         let staging = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("vdag read-back"),
@@ -406,16 +422,19 @@ impl GpuContext {
             .recv()
             .map_err(device_error)?
             .map_err(device_error)?;
-        let bytes = staging.get_mapped_range(..).map_err(device_error)?.to_vec();
+        // One copy, from the mapped bytes straight into the typed vector.
+        let values =
+            bytemuck::pod_collect_to_vec(&staging.get_mapped_range(..).map_err(device_error)?);
         staging.unmap();
-        Ok(bytes)
+        Ok(values)
     }
 }
 
 /// Counters of one traced batch.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TraceStats {
-    /// Rays handed to the shader (the others were answered on the host).
+    /// Rays traced by the shader (the others were answered on the host and
+    /// handed to it flagged to be skipped).
     pub gpu_rays: u64,
     /// Time from submitting the dispatches to their completion (with the
     /// copies of rays in and hits out).
@@ -622,6 +641,7 @@ impl GpuTracer {
         let started = Instant::now();
         let mut stats = TraceStats::default();
         let mut hits = vec![Hit::MISS; rays.len()];
+        let mut gpu_rays = Vec::new();
         // One dispatch per chunk of input rays, so that host memory stays
         // bounded whatever the batch size; set-up and answers on all cores.
         let chunk = self.options.rays_per_dispatch as usize;
@@ -629,63 +649,90 @@ impl GpuTracer {
             .step_by(chunk)
             .zip(rays.chunks(chunk).zip(hits.chunks_mut(chunk)))
         {
-            let setups: Vec<Result<Setup, prepare::LevelTooDeep>> = rays
-                .par_iter()
-                .map(|r| prepare::setup(&self.frame, r))
-                .collect();
-            // `traced[k]`: index in the chunk of GPU ray k, with its f64 ray.
-            let mut gpu_rays = Vec::new();
-            let mut traced = Vec::new();
-            for (i, setup) in setups.into_iter().enumerate() {
-                match setup {
-                    Err(prepare::LevelTooDeep(level)) => {
-                        return Err(GpuError::LevelTooDeep {
-                            ray: first + i,
-                            level,
-                            depth: self.frame.depth,
-                        });
+            // The shader gets every ray of the chunk, in order: a ray answered
+            // here goes with `RAY_SKIP` (the shader writes an empty record
+            // for it at once). So the set-up writes each ray in place, with
+            // no list of traced rays to compact and no per-ray record kept
+            // for the answers, which set a hit's ray up again (the same
+            // function, the same numbers). Building those lists one ray
+            // after the other took most of the call's host time.
+            let too_deep = AtomicUsize::new(usize::MAX);
+            rays.par_iter()
+                .zip(hits.par_iter_mut())
+                .enumerate()
+                .map(|(i, (ray, hit))| match prepare::setup(&self.frame, ray) {
+                    Ok(Setup::Trace(gpu, _)) => gpu,
+                    Ok(Setup::Done(answer)) => {
+                        *hit = answer;
+                        SKIPPED_RAY
                     }
-                    Ok(Setup::Done(hit)) => hits[i] = hit,
-                    Ok(Setup::Trace(gpu, grid)) => {
-                        gpu_rays.push(gpu);
-                        traced.push((i, grid));
+                    Err(_) => {
+                        too_deep.fetch_min(i, Ordering::Relaxed);
+                        SKIPPED_RAY
                     }
-                }
+                })
+                .collect_into_vec(&mut gpu_rays);
+            let i = too_deep.into_inner();
+            if let Some(Err(prepare::LevelTooDeep(level))) =
+                rays.get(i).map(|ray| prepare::setup(&self.frame, ray))
+            {
+                return Err(GpuError::LevelTooDeep {
+                    ray: first + i,
+                    level,
+                    depth: self.frame.depth,
+                });
             }
-            if gpu_rays.is_empty() {
+            let traced = gpu_rays
+                .par_iter()
+                .filter(|r| r.flags & RAY_SKIP == 0)
+                .count();
+            if traced == 0 {
                 continue;
             }
             let t0 = Instant::now();
             let results = self.dispatch_batch(&gpu_rays)?;
             stats.gpu_time += t0.elapsed();
-            stats.gpu_rays += gpu_rays.len() as u64;
-            for ((i, _), r) in traced.iter().zip(&results) {
-                let info = r.cell[3];
-                stats.iterations += u64::from(r.iterations);
-                stats.max_iterations = stats.max_iterations.max(r.iterations);
-                if info & INFO_EXHAUSTED != 0 {
-                    return Err(GpuError::IterationLimit {
+            stats.gpu_rays += traced as u64;
+            let (iterations, most, fault) = results
+                .par_iter()
+                .enumerate()
+                .map(|(i, r)| {
+                    let fault = (r.cell[3] & (INFO_EXHAUSTED | INFO_MALFORMED) != 0).then_some(i);
+                    (u64::from(r.iterations), r.iterations, fault)
+                })
+                .reduce(
+                    || (0, 0, None),
+                    |a, b| (a.0 + b.0, a.1.max(b.1), a.2.or(b.2)),
+                );
+            stats.iterations += iterations;
+            stats.max_iterations = stats.max_iterations.max(most);
+            if let Some(i) = fault {
+                return Err(if results[i].cell[3] & INFO_EXHAUSTED != 0 {
+                    GpuError::IterationLimit {
                         ray: first + i,
                         limit: self.base_params.max_iterations,
-                    });
-                }
-                if info & INFO_MALFORMED != 0 {
-                    return Err(GpuError::MalformedPointer { ray: first + i });
-                }
+                    }
+                } else {
+                    GpuError::MalformedPointer { ray: first + i }
+                });
             }
-            let answers: Vec<(usize, Hit)> = traced
-                .par_iter()
+            hits.par_iter_mut()
+                .zip(rays)
                 .zip(&results)
                 .filter(|(_, r)| r.cell[3] & INFO_HIT != 0)
-                .map(|((i, grid), r)| {
+                .for_each(|((hit, ray), r)| {
+                    // Only traced rays have hits.
+                    let Ok(Setup::Trace(_, grid)) = prepare::setup(&self.frame, ray) else {
+                        return;
+                    };
                     let level = ((r.cell[3] >> INFO_LEVEL_SHIFT) & 0xff) as u8;
                     let voxel = [r.cell[0], r.cell[1], r.cell[2]];
-                    let (t, face) = prepare::answer(self.frame.depth, grid, voxel, level);
+                    let (t, face) = prepare::answer(self.frame.depth, &grid, voxel, level);
                     let index = self
                         .frame
                         .indexed
                         .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32);
-                    let hit = Hit {
+                    *hit = Hit {
                         hit: true,
                         t,
                         voxel,
@@ -693,12 +740,7 @@ impl GpuTracer {
                         face,
                         index,
                     };
-                    (*i, hit)
-                })
-                .collect();
-            for (i, hit) in answers {
-                hits[i] = hit;
-            }
+                });
         }
         stats.total_time = started.elapsed();
         Ok((hits, stats))
@@ -790,8 +832,7 @@ impl GpuTracer {
             pass.dispatch_workgroups((rays.len() as u32).div_ceil(BATCH_WORKGROUP_SIZE), 1, 1);
         }
         inner.queue.submit([encoder.finish()]);
-        let bytes = self.context.read_back(&hit_buffer, hit_bytes)?;
-        Ok(bytemuck::pod_collect_to_vec(&bytes))
+        self.context.read_back(&hit_buffer, hit_bytes)
     }
 
     /// Camera parameters in grid space.
@@ -931,9 +972,8 @@ impl GpuTracer {
         });
         self.encode_render(&mut encoder, &group, &params);
         self.context.inner.queue.submit([encoder.finish()]);
-        let raw: Vec<GpuHit> =
-            bytemuck::pod_collect_to_vec(&self.context.read_back(&hit_buffer, pixels * 32)?);
-        let rgba = self.context.read_back(&image_buffer, pixels * 4)?;
+        let raw: Vec<GpuHit> = self.context.read_back(&hit_buffer, pixels * 32)?;
+        let rgba: Vec<u8> = self.context.read_back(&image_buffer, pixels * 4)?;
         let mut hits = Vec::with_capacity(raw.len());
         for (i, r) in raw.iter().enumerate() {
             let info = r.cell[3];

@@ -897,10 +897,15 @@ fn bad_pointers_and_runaway_rays_are_errors() {
             ..GpuOptions::default()
         },
     );
-    assert!(matches!(
-        limited.trace(&rays),
-        Err(GpuError::IterationLimit { limit: 2, .. })
-    ));
+    let Err(GpuError::IterationLimit { ray, limit: 2 }) = limited.trace(&rays) else {
+        panic!("expected the iteration limit");
+    };
+    // The first ray over the limit is the one named: the rays before it pass.
+    assert!(limited.trace(&rays[..ray]).is_ok());
+    assert_eq!(
+        limited.trace(&rays[ray..=ray]),
+        Err(GpuError::IterationLimit { ray: 0, limit: 2 })
+    );
     // Every pointer of the root made to point far outside level 1.
     let mut bytes = t.bytes.clone();
     let dag = Dag::open(&t.bytes).expect("open");
@@ -917,10 +922,14 @@ fn bad_pointers_and_runaway_rays_are_errors() {
         .into_iter()
         .filter(|r| r.dir.iter().all(|d| d.is_finite()))
         .collect();
-    assert!(matches!(
-        gpu.trace(&aimed),
-        Err(GpuError::MalformedPointer { .. })
-    ));
+    let Err(GpuError::MalformedPointer { ray }) = gpu.trace(&aimed) else {
+        panic!("expected a malformed pointer");
+    };
+    assert!(gpu.trace(&aimed[..ray]).is_ok());
+    assert_eq!(
+        gpu.trace(&aimed[ray..=ray]),
+        Err(GpuError::MalformedPointer { ray: 0 })
+    );
     // Options that cannot work.
     for options in [
         GpuOptions {

@@ -23,7 +23,7 @@
 //! bit for bit). Nothing of the answers depends on this being right: a
 //! gathered tile whose rays do not make a packet is traced ray by ray, so a
 //! wrong guess costs time, never correctness. Then [`tiles`] lists the
-//! 16×4 tiles of the image, each tile as runs of consecutive rays (its 4×4
+//! 8×8 tiles of the image, each tile as runs of consecutive rays (its 4×4
 //! blocks, the groups of a packet, row by row), copied into a packet of
 //! their own.
 
@@ -36,15 +36,17 @@ pub(crate) const MIN_WIDTH: usize = 16;
 const MAX_WIDTH: usize = 1 << 16;
 
 /// Rows of an image worth tiling, and of the strips its rays are traced
-/// in on all cores (two rows of tiles).
+/// in on all cores (one row of tiles).
 pub(crate) const TILE: usize = 8;
 
-/// Width and height of a tile in rays (a packet of 64): 16×4 rather than
-/// 8×8, since the gathers of four rows of the image ran faster than those of
-/// eight (d12 dragon, 1920×1080 row by row: 3–5 % less time in alternating
-/// frames in one process, for 3 % more instructions).
-pub(crate) const TILE_WIDTH: usize = 16;
-pub(crate) const TILE_HEIGHT: usize = 4;
+/// Width and height of a tile in rays (a packet of 64). 8×8: its beams are
+/// the narrowest, for the fewest instructions. (16×4 tiles, four rows of
+/// the image gathered at a time, had taken 3–5 % less time before the next
+/// tile's rows were prefetched; with the prefetch, 8×8 took 0.95–0.98 of
+/// 16×4's time on a Zen 4 EPYC: README.)
+pub(crate) const TILE_WIDTH: usize = 8;
+/// See [`TILE_WIDTH`].
+pub(crate) const TILE_HEIGHT: usize = 8;
 
 /// A row-major image of rays at the start of a slice: `rows` rows of
 /// `width` rays.
@@ -133,11 +135,11 @@ const BLOCK: usize = 4;
 /// Runs of [`BLOCK`] rays in a tile.
 const TILE_RUNS: usize = TILE_WIDTH * TILE_HEIGHT / BLOCK;
 
-/// The 16×4 tiles of `grid`, four rows at a time and left to right. Each
-/// tile's rays are [`Tile::runs`]: the tile's 4×4 blocks left to right, each
-/// block row by row, so that every 16 rays of a full tile are one block (a
-/// group of its packet). Tiles at the right and bottom edges hold the rays
-/// that exist.
+/// The [`TILE_WIDTH`]×[`TILE_HEIGHT`] tiles of `grid`, a row of tiles at a
+/// time and left to right. Each tile's rays are [`Tile::runs`]: the tile's
+/// columns of 4×4 blocks left to right, each column row by row, so that
+/// every 16 rays of a full tile are one block (a group of its packet). Tiles
+/// at the right and bottom edges hold the rays that exist.
 pub(crate) fn tiles(grid: ImageGrid) -> Tiles {
     Tiles { grid, x0: 0, y0: 0 }
 }
@@ -175,14 +177,15 @@ impl TileRuns {
 }
 
 impl Tile {
-    /// Whether the tile has all its 16×4 rays (not cut by an edge).
+    /// Whether the tile has all its rays (not cut by an edge).
     #[inline(always)]
     pub(crate) fn is_full(&self) -> bool {
         self.x0 + TILE_WIDTH <= self.grid.width && self.y0 + TILE_HEIGHT <= self.grid.rows
     }
 
     /// Calls `f(n, i)` for the 16 runs of `BLOCK` rays of a full tile, in
-    /// packet order (block by block, left to right, each block row by row):
+    /// packet order (column of blocks by column, left to right, each column
+    /// row by row):
     /// `n` the run's first ray in the packet, `i` in the image.
     #[inline(always)]
     pub(crate) fn for_each_block_row(&self, mut f: impl FnMut(usize, usize)) {
@@ -194,7 +197,7 @@ impl Tile {
         }
     }
 
-    /// The tile's rays, block by block, each block row by row.
+    /// The tile's rays, column of blocks by column, each column row by row.
     pub(crate) fn runs(&self) -> TileRuns {
         let (grid, x0, y0) = (self.grid, self.x0, self.y0);
         let mut tile = TileRuns::EMPTY;
@@ -316,10 +319,13 @@ mod tests {
                 for &i in &rays {
                     seen[i] += 1;
                 }
-                // Each tile within 16×4 pixels; in a full tile, each 16 rays
+                // Each tile within its pixels; in a full tile, each 16 rays
                 // are a 4×4 block.
                 let (x0, y0) = (rays[0] % w, rays[0] / w);
-                assert!(rays.iter().all(|&i| i % w - x0 < 16 && i / w - y0 < 4));
+                assert!(
+                    rays.iter()
+                        .all(|&i| i % w - x0 < TILE_WIDTH && i / w - y0 < TILE_HEIGHT)
+                );
                 assert_eq!(tile.is_full(), rays.len() == 64);
                 if tile.is_full() {
                     // The blocks' rows as `for_each_block_row` gives them.
@@ -333,7 +339,7 @@ mod tests {
                 }
             }
             assert!(seen.iter().all(|&n| n == 1), "{w}x{h}");
-            assert_eq!(tiles_seen, w.div_ceil(16) * h.div_ceil(4));
+            assert_eq!(tiles_seen, w.div_ceil(TILE_WIDTH) * h.div_ceil(TILE_HEIGHT));
         }
     }
 }

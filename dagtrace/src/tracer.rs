@@ -414,8 +414,8 @@ struct Found {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Gathers {
     /// [`Gathers::ScalarLoads`] on processors whose gather instructions are
-    /// known to be slow (AMD Zen, Zen+ and Zen 2, Hygon Dhyana), else
-    /// [`Gathers::Instruction`].
+    /// measured to be slower than eight loads (AMD Zen to Zen 4, Hygon
+    /// Dhyana), else [`Gathers::Instruction`].
     #[default]
     Auto,
     /// AVX2's gather instruction (`vpgatherdd`), one for eight words.
@@ -683,7 +683,7 @@ impl<'a> Tracer<'a> {
     /// traced as packets, sharing one walk of the coarse levels. The rays of
     /// an image row by row (a run of rays from one origin whose directions
     /// step smoothly along rows of at least 16, module `grid`) are traced
-    /// tile by tile, each 16×4 tile as a packet. Where the processor has AVX2
+    /// tile by tile, each 8×8 tile as a packet. Where the processor has AVX2
     /// all of this runs in code compiled for it (with BMI, POPCNT and LZCNT).
     /// Fails with the first error met, in the order the rays are traced.
     pub fn trace_sequential_into(&self, rays: &[Ray], hits: &mut [Hit]) -> Result<(), TraceError> {

@@ -85,6 +85,40 @@ const MAX_STORED_LEVELS: usize = 20;
 pub(crate) const LEVEL_SLOTS: usize = 32;
 const LEVEL_INDEX: usize = LEVEL_SLOTS - 1;
 
+/// The number of the next [`Tracer`] made (0 is no tracer's).
+static NEXT_TRACER_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+
+/// The running sums of the last attribute index computed on a thread, so that
+/// the next hit nearby (the next pixel's, mostly) adds up only the levels
+/// below the first one where the two paths part. The node at each level of a
+/// path is fixed by the root and the cell coordinates' higher bits, so two
+/// cells of one tracer and level whose coordinates agree above bit `b` share
+/// the sibling counts of every level whose child index is read above `b`.
+#[derive(Clone, Copy)]
+struct IndexMemo {
+    /// [`Tracer::id`] of the tracer that computed it; 0: nothing memoised.
+    tracer: u64,
+    /// The traced level and the cell's coordinates at that level.
+    level: u8,
+    cell: [u32; 3],
+    /// The cell's index.
+    index: u64,
+    /// `sums[l]`: the counts of the earlier siblings on levels `0..l`.
+    sums: [u64; LEVEL_SLOTS],
+}
+
+thread_local! {
+    static INDEX_MEMO: std::cell::RefCell<IndexMemo> = const {
+        std::cell::RefCell::new(IndexMemo {
+            tracer: 0,
+            level: 0,
+            cell: [0; 3],
+            index: 0,
+            sums: [0; LEVEL_SLOTS],
+        })
+    };
+}
+
 /// Level of the cells whose bounding box rays are clipped to: 1/64 of the cube.
 const BOUNDS_LEVEL: u8 = 6;
 
@@ -462,6 +496,9 @@ pub struct Tracer<'a> {
     pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
+    /// This tracer's number (shared by its clones, which read the same
+    /// bytes): the key of the per-thread [`IndexMemo`].
+    id: u64,
     compute_index: bool,
     /// Whether batches trace coherent runs as packets: only for DAGs of at
     /// most [`PACKET_MAX_DAG_BYTES`] (see there).
@@ -533,6 +570,7 @@ impl<'a> Tracer<'a> {
             grid_scale: (1u64 << depth) as f64 / header.root_size,
             cell_size,
             saturated: FxHashMap::default(),
+            id: NEXT_TRACER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             compute_index: true,
             packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
             small: dag_bytes <= SMALL_DAG_BYTES,
@@ -1669,9 +1707,45 @@ impl<'a> Tracer<'a> {
         if !self.index_kind() {
             return Ok(None);
         }
-        let mut index = 0u64;
-        for l in 0..level.min(self.leaf_level) {
-            let frame = stack[usize::from(l)];
+        INDEX_MEMO.with_borrow_mut(|memo| {
+            let index = self.index_from(found, level, stack, memo);
+            if index.is_err() {
+                // Its sums are half rewritten.
+                memo.tracer = 0;
+            }
+            index.map(Some)
+        })
+    }
+
+    /// [`Tracer::index`], reusing (and then replacing) the sums in `memo`
+    /// for the levels its cell's path shares with this one.
+    #[inline(always)]
+    fn index_from(
+        &self,
+        found: &Found,
+        level: u8,
+        stack: &Stack,
+        memo: &mut IndexMemo,
+    ) -> Result<u64, Fault> {
+        let top = level.min(self.leaf_level);
+        // Levels `0..shared` are summed in `memo` already.
+        let mut shared = 0;
+        if memo.tracer == self.id && memo.level == level {
+            let differ = (memo.cell[0] ^ found.cell[0])
+                | (memo.cell[1] ^ found.cell[1])
+                | (memo.cell[2] ^ found.cell[2]);
+            if differ == 0 {
+                return Ok(memo.index);
+            }
+            // Level `l` reads its child index from bit `level - 1 - l`.
+            let highest = 31 - differ.leading_zeros();
+            shared = u32::from(level)
+                .saturating_sub(highest + 1)
+                .min(u32::from(top)) as u8;
+        }
+        let mut index = memo.sums[usize::from(shared) & LEVEL_INDEX];
+        for l in shared..top {
+            let frame = stack[usize::from(l) & LEVEL_INDEX];
             let child = child_at(found.cell, level - 1 - l);
             let mut before = frame.mask & ((1u8 << child) - 1);
             let mut rank = 0;
@@ -1681,6 +1755,7 @@ impl<'a> Tracer<'a> {
                 index = index.saturating_add(self.count(l + 1, pointer)?);
                 rank += 1;
             }
+            memo.sums[usize::from(l + 1) & LEVEL_INDEX] = index;
         }
         if level > self.leaf_level {
             let bits =
@@ -1693,13 +1768,18 @@ impl<'a> Tracer<'a> {
             };
             index += u64::from((bits & ((1u64 << below) - 1)).count_ones());
         }
-        Ok(Some(index))
+        memo.tracer = self.id;
+        memo.level = level;
+        memo.cell = found.cell;
+        memo.index = index;
+        Ok(index)
     }
 
     /// Voxel count of a node or leaf: stored count, or the precomputed sum
     /// for saturated nodes.
+    #[inline(always)]
     fn count(&self, level: u8, pointer: u32) -> Result<u64, Fault> {
-        let section = &self.levels[usize::from(level)];
+        let section = &self.levels[usize::from(level) & LEVEL_INDEX];
         if level == self.leaf_level {
             return Ok(u64::from(section.leaf(level, pointer)?.count_ones()));
         }
@@ -1707,6 +1787,13 @@ impl<'a> Tracer<'a> {
         if attribute != COUNT_SATURATED {
             return Ok(u64::from(attribute));
         }
+        self.saturated_count(level, pointer)
+    }
+
+    /// [`Tracer::count`] of a node whose stored count is saturated: a few
+    /// nodes near the root, kept out of line.
+    #[inline(never)]
+    fn saturated_count(&self, level: u8, pointer: u32) -> Result<u64, Fault> {
         match self.saturated.get(&(level, pointer)) {
             Some(&n) => Ok(n),
             // Not reached from the root by saturated nodes: only in a file

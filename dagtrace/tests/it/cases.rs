@@ -186,6 +186,123 @@ fn attribute_kind_zero_has_no_index() {
     assert_eq!(hit.index, None);
 }
 
+/// A thread remembers the sums behind its last attribute index so that the
+/// next hit nearby reuses the levels both paths share. Two tracers over
+/// different scenes of the same depth (and a clone of one), alternating on one
+/// thread ray by ray and batch by batch, with levels of detail mixed in:
+/// every index must still be the one of its own scene and level.
+#[test]
+fn indices_stay_right_when_tracers_and_levels_alternate() {
+    let depth = 9;
+    let n = 1u32 << depth;
+    let shell = |centre: [f64; 3], radius: f64| {
+        let mut voxels = Vec::new();
+        let (lo, hi) = (
+            (centre[0] - radius - 2.0) as u32,
+            (centre[0] + radius + 2.0) as u32,
+        );
+        for z in lo..hi.min(n) {
+            for y in lo..hi.min(n) {
+                for x in lo..hi.min(n) {
+                    let d2: f64 = [x, y, z]
+                        .iter()
+                        .zip(&centre)
+                        .map(|(&p, &c)| (f64::from(p) + 0.5 - c).powi(2))
+                        .sum();
+                    if d2 <= radius * radius && d2 >= (radius - 1.5) * (radius - 1.5) {
+                        voxels.push([x, y, z]);
+                    }
+                }
+            }
+        }
+        voxels
+    };
+    let a = build(
+        depth,
+        AttributeKind::VoxelCount,
+        &shell([256.0; 3], 120.0),
+        [0.0; 3],
+        512.0,
+    );
+    let mut b_voxels = shell([250.0; 3], 100.0);
+    b_voxels.extend(shell([250.0; 3], 60.0));
+    let b = build(depth, AttributeKind::VoxelCount, &b_voxels, [0.0; 3], 512.0);
+    let (dag_a, dag_b) = (Dag::open(&a).unwrap(), Dag::open(&b).unwrap());
+    let (ref_a, ref_b) = (Reference::new(&dag_a), Reference::new(&dag_b));
+    let tracer_a = Tracer::new(&dag_a).unwrap();
+    let tracer_b = Tracer::new(&dag_b).unwrap();
+    let clone_a = tracer_a.clone();
+    // Coherent 16x16 bundles (batches trace them as packets) from points
+    // around the scenes, at full depth and at two coarser levels.
+    let mut rng = Rng(41);
+    let mut bundles = Vec::new();
+    for k in 0..12 {
+        let origin = [0; 3].map(|_| rng.range(-300.0, 812.0) as f32);
+        let target = [0; 3].map(|_| rng.range(180.0, 330.0) as f32);
+        let level = [None, Some(depth - 1), Some(depth - 3)][k % 3];
+        let bundle: Vec<Ray> = (0..256)
+            .map(|i| {
+                let (u, v) = ((i % 16) as f32 - 7.5, (i / 16) as f32 - 7.5);
+                let t = [
+                    target[0] + u * 1.3,
+                    target[1] + v * 1.3,
+                    target[2] + (u - v) * 0.4,
+                ];
+                Ray {
+                    level,
+                    ..ray(origin, [0, 1, 2].map(|a| t[a] - origin[a]))
+                }
+            })
+            .collect();
+        bundles.push(bundle);
+    }
+    let check = |reference: &Reference, ray: &Ray, hit: &Hit, what: &str| {
+        if hit.hit {
+            let level = ray.level.unwrap_or(depth);
+            let expected = reference.index_of(hit.voxel, level);
+            assert_eq!(hit.index, Some(expected), "{what}: {ray:?} -> {hit:?}");
+        }
+        usize::from(hit.hit)
+    };
+    let mut hits = 0;
+    for bundle in &bundles {
+        let mut batch = vec![Hit::MISS; bundle.len()];
+        for (tracer, reference, what) in [
+            (&tracer_a, &ref_a, "a"),
+            (&tracer_b, &ref_b, "b"),
+            (&clone_a, &ref_a, "clone of a"),
+        ] {
+            tracer.trace_sequential_into(bundle, &mut batch).unwrap();
+            for (ray, hit) in bundle.iter().zip(&batch) {
+                hits += check(reference, ray, hit, what);
+            }
+        }
+        for ray in bundle {
+            hits += check(&ref_a, ray, &tracer_a.trace(ray).unwrap(), "a, one ray");
+            hits += check(&ref_b, ray, &tracer_b.trace(ray).unwrap(), "b, one ray");
+        }
+    }
+    assert!(hits > 5000, "{hits} hits");
+    // Cells of two levels with the same coordinates, one after the other:
+    // voxel (0, 5, 5) and the level-6 cell (0, 5, 5) of a solid corner cube.
+    let corner: Vec<[u32; 3]> = (0..64u32 * 64 * 64)
+        .map(|i| [i % 64, i / 64 % 64, i / 4096])
+        .collect();
+    let c = build(depth, AttributeKind::VoxelCount, &corner, [0.0; 3], 512.0);
+    let dag_c = Dag::open(&c).unwrap();
+    let (ref_c, tracer_c) = (Reference::new(&dag_c), Tracer::new(&dag_c).unwrap());
+    let fine = ray([-10.0, 5.5, 5.5], [1.0, 0.0, 0.0]);
+    let coarse = Ray {
+        level: Some(6),
+        ..ray([-10.0, 44.0, 44.0], [1.0, 0.0, 0.0])
+    };
+    for ray in [fine, coarse, fine] {
+        let hit = tracer_c.trace(&ray).unwrap();
+        assert_eq!(hit.voxel, [0, 5, 5]);
+        check(&ref_c, &ray, &hit, "c");
+    }
+}
+
 #[test]
 fn indices_agree_with_the_reader() {
     let mut rng = Rng(7);

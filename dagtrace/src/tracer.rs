@@ -1746,14 +1746,27 @@ impl<'a> Tracer<'a> {
         let mut index = memo.sums[usize::from(shared) & LEVEL_INDEX];
         for l in shared..top {
             let frame = stack[usize::from(l) & LEVEL_INDEX];
+            let section = &self.levels[usize::from(l) & LEVEL_INDEX];
             let child = child_at(found.cell, level - 1 - l);
-            let mut before = frame.mask & ((1u8 << child) - 1);
-            let mut rank = 0;
-            while before != 0 {
-                before &= before - 1;
-                let pointer = self.levels[usize::from(l)].pointer(l, frame.word, rank)?;
-                index = index.saturating_add(self.count(l + 1, pointer)?);
-                rank += 1;
+            let rank = (frame.mask & ((1u8 << child) - 1)).count_ones();
+            let children = frame.mask.count_ones();
+            if rank <= children - rank {
+                // The earlier siblings' counts.
+                for r in 0..rank {
+                    let pointer = section.pointer(l, frame.word, r)?;
+                    index = index.saturating_add(self.count(l + 1, pointer)?);
+                }
+            } else {
+                // Fewer reads the other way round: the node's own count
+                // (its header is on the path, read already) less those of
+                // the child and the later siblings. The same number in a
+                // valid file, whose counts add up.
+                let mut later = 0u64;
+                for r in rank..children {
+                    let pointer = section.pointer(l, frame.word, r)?;
+                    later = later.saturating_add(self.count(l + 1, pointer)?);
+                }
+                index = index.saturating_add(self.count(l, frame.word)?.saturating_sub(later));
             }
             memo.sums[usize::from(l + 1) & LEVEL_INDEX] = index;
         }

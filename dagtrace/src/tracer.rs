@@ -1752,24 +1752,20 @@ impl<'a> Tracer<'a> {
             // whose `count_ones` is a dozen instructions.
             let rank = u32::from(POPCOUNT8[usize::from(frame.mask & ((1u8 << child) - 1))]);
             let children = u32::from(POPCOUNT8[usize::from(frame.mask)]);
-            if rank <= children - rank {
-                // The earlier siblings' counts.
-                for r in 0..rank {
-                    let pointer = section.pointer(l, frame.word, r)?;
-                    index = index.saturating_add(self.count(l + 1, pointer)?);
-                }
-            } else {
-                // Fewer reads the other way round: the node's own count
-                // (its header is on the path, read already) less those of
-                // the child and the later siblings. The same number in a
-                // valid file, whose counts add up.
-                let mut later = 0u64;
-                for r in rank..children {
-                    let pointer = section.pointer(l, frame.word, r)?;
-                    later = later.saturating_add(self.count(l + 1, pointer)?);
-                }
-                index = index.saturating_add(self.count(l, frame.word)?.saturating_sub(later));
+            // The earlier siblings' counts or, where that reads fewer, the
+            // node's own count (its header is on the path, read already)
+            // less those of the child and the later siblings: the same
+            // number in a valid file, whose counts add up.
+            let earlier = rank <= children - rank;
+            let mut sum = 0u64;
+            for r in if earlier { 0..rank } else { rank..children } {
+                let pointer = section.pointer(l, frame.word, r)?;
+                sum = sum.saturating_add(self.count(l + 1, pointer)?);
             }
+            if !earlier {
+                sum = self.count(l, frame.word)?.saturating_sub(sum);
+            }
+            index = index.saturating_add(sum);
             memo.sums[usize::from(l + 1) & LEVEL_INDEX] = index;
         }
         if level > self.leaf_level {

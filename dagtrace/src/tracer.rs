@@ -1882,19 +1882,32 @@ pub(crate) fn prefetch(bytes: &[u8], at: usize) {
     let _ = (bytes, at);
 }
 
+/// `_mm_prefetch`'s hint for the first-level cache (`_MM_HINT_T0`).
+const INTO_L1: i32 = 3;
+/// `_mm_prefetch`'s hint for the second-level cache (`_MM_HINT_T1`).
+const INTO_L2: i32 = 2;
+
 /// Hints the processor to load the cache line holding `at`, which need not
-/// be a valid address.
+/// be a valid address, into the cache that `HINT` names ([`INTO_L1`] or
+/// [`INTO_L2`]).
 #[inline(always)]
-pub(crate) fn prefetch_address(at: *const u8) {
+fn prefetch_into<const HINT: i32>(at: *const u8) {
     #[cfg(target_arch = "x86_64")]
     // SAFETY: `prefetch` is only a hint: it reads nothing the program sees
     // and never faults, whatever the address; `sse` is part of the x86-64
     // baseline.
     unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(at.cast())
+        std::arch::x86_64::_mm_prefetch::<HINT>(at.cast())
     };
     #[cfg(not(target_arch = "x86_64"))]
     let _ = at;
+}
+
+/// Hints the processor to load the cache line holding `at`, which need not
+/// be a valid address.
+#[inline(always)]
+pub(crate) fn prefetch_address(at: *const u8) {
+    prefetch_into::<INTO_L1>(at);
 }
 
 /// Hints the processor to load the cache lines that hold `items` into the
@@ -1910,25 +1923,13 @@ pub(crate) fn prefetch_range<T>(items: &[T]) {
     if bytes == 0 {
         return;
     }
-    let line = |at: usize| {
-        #[cfg(target_arch = "x86_64")]
-        // SAFETY: as in `prefetch_address`: only a hint, never faults
-        // whatever the address, and `sse` is part of the x86-64 baseline.
-        unsafe {
-            std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T1 }>(
-                start.wrapping_add(at).cast(),
-            )
-        };
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = at;
-    };
     let mut at = 0;
     while at < bytes {
-        line(at);
+        prefetch_into::<INTO_L2>(start.wrapping_add(at));
         at += 64;
     }
     // The last line, where the items do not start on a line.
-    line(bytes - 1);
+    prefetch_into::<INTO_L2>(start.wrapping_add(bytes - 1));
 }
 
 /// Bit `c` set when byte `c` (sub-brick `c`) of a leaf mask is non-zero.

@@ -1886,6 +1886,11 @@ pub(crate) fn prefetch(bytes: &[u8], at: usize) {
 const INTO_L1: i32 = 3;
 /// `_mm_prefetch`'s hint for the second-level cache (`_MM_HINT_T1`).
 const INTO_L2: i32 = 2;
+// The hints are spelled out so that they exist on every target; on x86-64
+// they must be the intrinsics' own.
+#[cfg(target_arch = "x86_64")]
+const _: () =
+    assert!(INTO_L1 == std::arch::x86_64::_MM_HINT_T0 && INTO_L2 == std::arch::x86_64::_MM_HINT_T1);
 
 /// Hints the processor to load the cache line holding `at`, which need not
 /// be a valid address, into the cache that `HINT` names ([`INTO_L1`] or

@@ -804,7 +804,7 @@ impl<'a> Tracer<'a> {
             // The rays looked at are traced before the look goes much
             // further, while they are still in the caches (see
             // `LANES_RUN_MAX`).
-            if i - run == LANES_RUN_MAX {
+            if i - run >= LANES_RUN_MAX {
                 self.trace_lanes(&rays[run..i], &mut hits[run..i])?;
                 run = i;
             }

@@ -43,7 +43,7 @@ pub(crate) const TILE: usize = 8;
 /// the narrowest, for the fewest instructions. (16×4 tiles, four rows of
 /// the image gathered at a time, had taken 3–5 % less time before the next
 /// tile's rows were prefetched; with the prefetch, 8×8 took 0.95–0.98 of
-/// 16×4's time on a Zen 4 EPYC: README.)
+/// 16×4's time on a Zen 4 EPYC: dagtrace/BENCHMARKS.md.)
 pub(crate) const TILE_WIDTH: usize = 8;
 /// See [`TILE_WIDTH`].
 pub(crate) const TILE_HEIGHT: usize = 8;

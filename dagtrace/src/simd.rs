@@ -121,12 +121,12 @@ fn detect() -> bool {
 /// AMD's families 17h (Zen, Zen+ and Zen 2) and 19h (Zen 3 and Zen 4), and
 /// Hygon's family 18h (built on Zen). Family 17h's `vpgatherdd` of eight
 /// 32-bit words is microcoded: on a Zen 1 EPYC it took 20–30 cycles a gather
-/// where eight loads put together took 6–10 (microbenchmark, dagtrace/BENCHMARKS.md). Family
-/// 19h gathers faster, but the loads still won there: 0.955 of the time of
-/// d12 random rays on a Zen 4 EPYC (101 alternating rounds), 0.983 on a Zen 3
-/// (dagtrace/BENCHMARKS.md). Intel's cores keep the instruction (scalar loads took 1.05–1.07
-/// of its time on a Xeon), and so do processors not measured (AMD's family
-/// 1Ah, Zen 5, among them).
+/// where eight loads put together took 6–10 (microbenchmark). Family 19h
+/// gathers faster, but the loads still won there: 0.955 of the time of d12
+/// random rays on a Zen 4 EPYC (101 alternating rounds), 0.983 on a Zen 3.
+/// Intel's cores keep the instruction (scalar loads took 1.05–1.07 of its
+/// time on a Xeon), and so do processors not measured (AMD's family 1Ah,
+/// Zen 5, among them). The measurements: dagtrace/BENCHMARKS.md.
 pub(crate) fn slow_gathers() -> bool {
     // (`cpuid` exists on every x86-64 processor; leaves 0 and 1 always do.)
     let (vendor, signature) = (__cpuid(0), __cpuid(1));

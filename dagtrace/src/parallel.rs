@@ -47,50 +47,25 @@ impl Tracer<'_> {
         if !self.packets {
             return self.trace_chunks(rays, hits);
         }
-        // Images start where a run of rays with one start begins. Looked for
-        // every `STRIDE` rays: where the start differs from the last ray
-        // looked at and stays the same for as many rays as the smallest
-        // image has, back to the run's first ray.
-        const STRIDE: usize = 64;
-        const SMALLEST: usize = grid::MIN_WIDTH * grid::TILE;
         let mut done = 0;
-        let mut i = 0;
-        let mut previous: Option<usize> = None;
-        while i < count {
-            let changed = previous.is_none_or(|p| !grid::same_start(&rays[i], &rays[p]));
-            if changed
-                && i + SMALLEST <= count
-                && grid::same_start(&rays[i], &rays[i + SMALLEST - 1])
-            {
-                let mut start = i;
-                while start > done && grid::same_start(&rays[start - 1], &rays[i]) {
-                    start -= 1;
-                }
-                if let Some(image) = grid::find_grid(&rays[start..]) {
-                    self.trace_chunks(&rays[done..start], &mut hits[done..start])?;
-                    let end = start + image.len();
-                    let strip = image.width * grid::TILE;
-                    rays[start..end]
-                        .par_chunks(strip)
-                        .zip(hits[start..end].par_chunks_mut(strip))
-                        .try_for_each(|(rays, hits)| {
-                            let rows = rays.len() / image.width;
-                            let strip = grid::ImageGrid {
-                                width: image.width,
-                                rows,
-                            };
-                            self.trace_image_sequential(rays, hits, strip)
-                        })?;
-                    done = end;
-                    i = end;
-                    previous = None;
-                    continue;
-                }
-            }
-            previous = Some(i);
-            i += STRIDE;
+        for (start, image) in grid::images(rays) {
+            self.trace_chunks(&rays[done..start], &mut hits[done..start])?;
+            let end = start + image.len();
+            let strip = image.width * grid::TILE;
+            rays[start..end]
+                .par_chunks(strip)
+                .zip(hits[start..end].par_chunks_mut(strip))
+                .try_for_each(|(rays, hits)| {
+                    let rows = rays.len() / image.width;
+                    let strip = grid::ImageGrid {
+                        width: image.width,
+                        rows,
+                    };
+                    self.trace_image_sequential(rays, hits, strip)
+                })?;
+            done = end;
         }
-        self.trace_chunks(&rays[done..count], &mut hits[done..count])
+        self.trace_chunks(&rays[done..], &mut hits[done..])
     }
 
     /// `rays` in chunks on all cores: of [`MAX_CHUNK`] rays, or fewer (down to

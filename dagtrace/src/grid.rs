@@ -435,11 +435,16 @@ mod tests {
         }
         assert_eq!(images(&rays).collect::<Vec<_>>(), expected);
         // No images: nothing found, and the look thins out.
-        let scattered = scattered_rays(200_000);
-        let mut search = images(&scattered);
+        assert_no_image_found_sparsely(&scattered_rays(200_000));
+    }
+
+    /// `rays` hold no image, and the search for one reads at most about one
+    /// ray in `IMAGE_STRIDE_MAX`.
+    fn assert_no_image_found_sparsely(rays: &[Ray]) {
+        let mut search = images(rays);
         assert_eq!(search.next(), None);
         assert!(
-            search.looked <= scattered.len() / IMAGE_STRIDE_MAX + 8,
+            search.looked <= rays.len() / IMAGE_STRIDE_MAX + 8,
             "{} rays looked at",
             search.looked
         );
@@ -451,13 +456,7 @@ mod tests {
         // must not read every 64th ray of it (see IMAGE_STRIDE_MIN).
         let frame = Camera::looking_at_cube([0.0; 3], 1.0, 1.5).frame().unwrap();
         let (tiled, _) = frame.rays_in_tiles(1920, 1080, None);
-        let mut search = images(&tiled);
-        assert_eq!(search.next(), None);
-        assert!(
-            search.looked <= tiled.len() / IMAGE_STRIDE_MAX + 8,
-            "{} rays looked at",
-            search.looked
-        );
+        assert_no_image_found_sparsely(&tiled);
     }
 
     #[test]

@@ -34,9 +34,10 @@
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
 //! ([`dagtrace::Gathers`]), and adds the median of the per-run ratios of
-//! their times. For that comparison alone, many short runs without the mesh
-//! (`--only random --random 200000 --runs 101`) beat a few long ones on a
-//! noisy machine.
+//! their times; `--lanes both` likewise with eight and sixteen lanes to a
+//! vector ([`dagtrace::Lanes`]). For such a comparison alone, many short runs
+//! without the mesh (`--only random --random 200000 --runs 101`) beat a few
+//! long ones on a noisy machine.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -46,7 +47,7 @@ use dagfmt::Dag;
 use dagfmt::batch::{Hit, Ray};
 use dagfmt::mmap::MappedFile;
 use dagtrace::camera::Camera;
-use dagtrace::{Gathers, Tracer};
+use dagtrace::{Gathers, Lanes, Tracer};
 use glam::Vec3A;
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -87,6 +88,35 @@ struct Args {
     /// scalar loads, all alternating in the same run).
     #[arg(long, value_enum, default_value_t = GatherArg::Auto)]
     gathers: GatherArg,
+    /// How many rays a step of the vector lanes advances: `auto` (the
+    /// tracer's choice for this processor), `eight`, `sixteen` (AVX-512,
+    /// where the processor has it), or `both` (each dagtrace batch figure
+    /// twice, eight lanes then sixteen, all alternating in the same run).
+    #[arg(long, value_enum, default_value_t = LaneArg::Auto)]
+    lanes: LaneArg,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+enum LaneArg {
+    Auto,
+    Eight,
+    Sixteen,
+    Both,
+}
+
+impl LaneArg {
+    /// The lane settings to time, with their names.
+    fn modes(self) -> Vec<(Lanes, &'static str)> {
+        match self {
+            LaneArg::Auto => vec![(Lanes::Auto, "")],
+            LaneArg::Eight => vec![(Lanes::Eight, "")],
+            LaneArg::Sixteen => vec![(Lanes::Sixteen, "")],
+            LaneArg::Both => vec![
+                (Lanes::Eight, " [eight lanes]"),
+                (Lanes::Sixteen, " [sixteen lanes]"),
+            ],
+        }
+    }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -179,7 +209,7 @@ type BatchApi<'t> = fn(&Tracer<'t>, &[Ray], &mut [Hit]) -> Result<(), dagtrace::
 /// Per tracer setting, a call of `trace` (a batch API) that traces `rays`
 /// into that setting's own hits (compared with `trace()`'s afterwards).
 fn per_setting<'a, 't: 'a>(
-    tracers: &'a [(Tracer<'t>, &str)],
+    tracers: &'a [(Tracer<'t>, String)],
     rays: &'a [Ray],
     hits: &'a mut [Vec<Hit>],
     trace: BatchApi<'t>,
@@ -331,14 +361,17 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
     let tracer = Tracer::new(&dag)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
-    let modes = args.gathers.modes();
-    let tracers: Vec<(Tracer, &str)> = modes
-        .iter()
-        .map(|&(g, name)| (tracer.clone().with_gathers(g), name))
-        .collect();
+    // Every combination of the gather and lane settings asked for.
+    let mut tracers: Vec<(Tracer, String)> = Vec::new();
+    for (gathers, gathers_name) in args.gathers.modes() {
+        for (lanes, lanes_name) in args.lanes.modes() {
+            let t = tracer.clone().with_gathers(gathers).with_lanes(lanes);
+            tracers.push((t, format!("{gathers_name}{lanes_name}")));
+        }
+    }
     let header = dag.header();
     println!(
-        "{}: depth {}, {} voxels, {} bytes; vector lanes read with {}",
+        "{}: depth {}, {} voxels, {} bytes; vector lanes read with {}; {} rays to a vector",
         path.display(),
         header.depth,
         header.voxel_count,
@@ -347,6 +380,14 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             GatherArg::Both => "the gather instruction and with scalar loads, in turn",
             _ if tracers[0].0.gathers() == Gathers::ScalarLoads => "scalar loads",
             _ => "the gather instruction",
+        },
+        match args.lanes {
+            LaneArg::Both if tracers[1].0.lanes() == Lanes::Eight => {
+                "eight and eight (no AVX-512 here), in turn,"
+            }
+            LaneArg::Both => "eight and sixteen, in turn,",
+            _ if tracers[0].0.lanes() == Lanes::Sixteen => "sixteen",
+            _ => "eight",
         }
     );
     let camera = Camera::automatic(&dag, f64::from(args.width) / f64::from(args.height))
@@ -462,9 +503,13 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             );
         }
         if settings == 2 {
-            // Time with scalar loads over time with the gather instruction.
+            // Time of the second setting over time of the first (the rates'
+            // inverse ratio).
+            let names = [&tracers[0].1, &tracers[1].1].map(|n| n.trim().trim_matches(['[', ']']));
             println!(
-                "{name:>18}  scalar loads / gather instruction, time: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
+                "{name:>18}  {} / {}, time: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
+                names[1],
+                names[0],
                 ratio(&one[1].0, &one[2].0),
                 ratio(&one[1].1, &one[2].1),
                 ratio(&all[0].0, &all[1].0),

@@ -35,4 +35,4 @@ mod tables;
 mod tracer;
 
 pub use dagfmt::batch::{Hit, Ray};
-pub use tracer::{Gathers, TraceError, Tracer};
+pub use tracer::{Gathers, Lanes, TraceError, Tracer};

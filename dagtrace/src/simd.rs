@@ -1,4 +1,5 @@
-//! The batch traversal with eight rays to an AVX2 vector.
+//! The batch traversal with eight rays to an AVX2 vector, or sixteen to an
+//! AVX-512 vector.
 //!
 //! [`trace_lanes`] is what [`Tracer::trace_lanes`] runs where the processor
 //! has AVX2 (checked at run time). Every ray goes through the very same steps
@@ -14,6 +15,16 @@
 //!   the levels whose frames have children left finds it; the scalar walk
 //!   climbs one level at a time through the same frames); then the choice of
 //!   the next child (`FIRST`), its rank (popcount) and its pointer (gathered).
+//! - Where the processor has AVX-512 ([`wide_available`], [`crate::Lanes`]),
+//!   a group holds sixteen rays and [`step_wide`] advances them with the
+//!   same operations per lane on 512-bit vectors; two such groups take
+//!   turns (`WIDE_GROUPS`). Why it pays: a step is one chain of dependent
+//!   reads (header, then stack frames, `FIRST` entry and pointer, each
+//!   waiting on the one before), and the eight-lane steps were not bound by
+//!   memory: on an Intel Xeon a lane's step took 16.5 ns in a 1 MB DAG that
+//!   stays in the L2 cache and 18.1 ns in a 14 MB one. Sixteen lanes do the
+//!   same chain and about the same instructions for twice the rays: d12
+//!   random rays in 0.76–0.80 of the time (dagtrace/BENCHMARKS.md).
 //! - Four groups take turns (each group's scalar work, then its step), and
 //!   the node each ray goes to next is prefetched, so the memory latency of
 //!   one group's reads is spent on the other groups (32 reads in flight;
@@ -44,6 +55,12 @@
 //!
 //! Gathers address all level sections from one base pointer with 32-bit
 //! offsets, so files whose sections span more than 2 GiB use the scalar lanes.
+//!
+//! The sixteen-lane code is [`step`]'s, instruction for instruction, in
+//! 512-bit form with mask registers (a comparison gives a `__mmask16`, not a
+//! vector of all-ones lanes); `run` is shared through [`StepLanes`]. The
+//! tests run every path, eight and sixteen lanes (where the processor has
+//! AVX-512), gather instruction and scalar loads, against `trace()`.
 
 use std::arch::x86_64::*;
 
@@ -57,8 +74,15 @@ use crate::tracer::{
     prefetch_address,
 };
 
-/// Rays to a vector.
+/// Rays to an AVX2 vector.
 const W: usize = 8;
+/// Rays to an AVX-512 vector: the wide lanes.
+const WIDE: usize = 16;
+/// Groups of [`WIDE`] rays in flight, for every DAG: on an Intel Xeon
+/// (AVX-512, 2 MB of L2 a core), three groups took 0.98–0.99 of two's time
+/// for random rays at d12 and d14 (within the noise), and one group 1.01 of
+/// two's at d10 (a 1 MB DAG, every one of eight alternating rounds slower).
+const WIDE_GROUPS: usize = 2;
 /// Groups of [`W`] rays in flight, taking turns, for DAGs larger than
 /// [`crate::tracer::SMALL_DAG_BYTES`].
 const GROUPS: usize = 4;
@@ -116,6 +140,23 @@ fn detect() -> bool {
     yes
 }
 
+/// Whether this processor runs the sixteen-lane traversal: [`available`],
+/// and AVX-512 with the subsets [`step_wide`] is compiled with (F, BW, VL,
+/// DQ, CD: every processor with AVX-512 since Intel's Skylake-SP and AMD's
+/// Zen 4). Looked up once.
+#[inline]
+pub(crate) fn wide_available() -> bool {
+    static WIDE_AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *WIDE_AVAILABLE.get_or_init(|| {
+        available()
+            && std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512bw")
+            && std::is_x86_feature_detected!("avx512vl")
+            && std::is_x86_feature_detected!("avx512dq")
+            && std::is_x86_feature_detected!("avx512cd")
+    })
+}
+
 /// Whether this processor's gather instructions are slow enough that the
 /// vector lanes read faster with scalar loads ([`crate::Gathers::Auto`]):
 /// AMD's families 17h (Zen, Zen+ and Zen 2) and 19h (Zen 3 and Zen 4), and
@@ -152,9 +193,10 @@ fn slow_gathers_on(vendor: &[u8; 12], eax: u32) -> bool {
     )
 }
 
-/// Entries of the per-level tables: three vectors, more than the most
-/// stored levels (20).
-const LEVEL_TABLE: usize = 24;
+/// Entries of the per-level tables, more than the most stored levels (20):
+/// four AVX2 vectors (the eight lanes read the first three) or two AVX-512
+/// vectors.
+const LEVEL_TABLE: usize = 32;
 
 /// The level sections as gathers address them: byte offsets from one base.
 struct Sections {
@@ -215,11 +257,12 @@ impl Sections {
     }
 }
 
-/// Eight rays in flight: the vector state (one array element per lane) and,
-/// for the scalar parts, each ray's walk and stack.
+/// `W` rays in flight (eight, or sixteen for the wide lanes): the vector
+/// state (one array element per lane) and, for the scalar parts, each ray's
+/// walk and stack.
 #[derive(Clone, Copy)]
-#[repr(C, align(32))]
-struct Group {
+#[repr(C, align(64))]
+struct Group<const W: usize> {
     // The ray (mirrored grid frame, clipped), as in `Prepared`.
     ox: [f32; W],
     oy: [f32; W],
@@ -263,7 +306,7 @@ struct Group {
     ray: [usize; W],
 }
 
-impl Default for Group {
+impl<const W: usize> Default for Group<W> {
     fn default() -> Self {
         Group {
             ox: [0.0; W],
@@ -299,7 +342,7 @@ impl Default for Group {
     }
 }
 
-impl Group {
+impl<const W: usize> Group<W> {
     /// Puts the walk of ray `ray` into `lane` (its stack was filled by
     /// [`Tracer::begin`]).
     fn load(&mut self, lane: usize, ray: usize, walk: Walk) {
@@ -347,22 +390,47 @@ pub(crate) fn trace_lanes(
 
 /// [`trace_lanes`] without the scalar fallback.
 fn try_trace_lanes(tracer: &Tracer<'_>, rays: &[Ray], hits: &mut [Hit]) -> Result<(), Abandon> {
-    try_trace_lanes_with(tracer, rays, hits, tracer.small, tracer.gather_loads)
+    let how = LaneChoice {
+        small: tracer.small,
+        loads: tracer.gather_loads,
+        wide: tracer.wide_lanes,
+    };
+    try_trace_lanes_with(tracer, rays, hits, how)
 }
 
-/// [`try_trace_lanes`] with the small DAGs' number of groups or the others'
-/// (`small`), reading with gather instructions or scalar loads (`loads`).
+/// How [`try_trace_lanes_with`] runs the lanes.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LaneChoice {
+    /// The small DAGs' number of groups of eight lanes, or the others'
+    /// (sixteen lanes take [`WIDE_GROUPS`] for every DAG).
+    pub(crate) small: bool,
+    /// Scalar loads, or the gather instruction.
+    pub(crate) loads: bool,
+    /// Sixteen lanes (where [`wide_available`]), or eight.
+    pub(crate) wide: bool,
+}
+
+/// [`try_trace_lanes`] run as `how` says.
 fn try_trace_lanes_with(
     tracer: &Tracer<'_>,
     rays: &[Ray],
     hits: &mut [Hit],
-    small: bool,
-    loads: bool,
+    how: LaneChoice,
 ) -> Result<(), Abandon> {
     let sections = Sections::new(tracer).ok_or(Abandon)?;
+    if how.wide && wide_available() {
+        // SAFETY: `wide_available()` found the features.
+        return unsafe {
+            if how.loads {
+                run_wide::<WIDE_GROUPS, true>(tracer, &sections, rays, hits)
+            } else {
+                run_wide::<WIDE_GROUPS, false>(tracer, &sections, rays, hits)
+            }
+        };
+    }
     // SAFETY: only called where `available()` found the features.
     unsafe {
-        match (small, loads) {
+        match (how.small, how.loads) {
             (true, false) => run::<SMALL_DAG_GROUPS, false>(tracer, &sections, rays, hits),
             (true, true) => run::<SMALL_DAG_GROUPS, true>(tracer, &sections, rays, hits),
             (false, false) => run::<GROUPS, false>(tracer, &sections, rays, hits),
@@ -371,24 +439,61 @@ fn try_trace_lanes_with(
     }
 }
 
-/// [`trace_lanes`] without the scalar fallback, with the small DAGs' number
-/// of groups or the others' (`small`) whatever the DAG's size, and gather
-/// instructions or scalar loads (`loads`) whatever the tracer's choice:
-/// `false` when the vector traversal gave up (on valid DAGs it never should).
+/// [`trace_lanes`] without the scalar fallback, run as `how` says whatever
+/// the DAG's size and the tracer's choices (sixteen lanes only where
+/// [`wide_available`]): `false` when the vector traversal gave up (on valid
+/// DAGs it never should).
 #[cfg(test)]
 pub(crate) fn trace_lanes_or_give_up(
     tracer: &Tracer<'_>,
     rays: &[Ray],
     hits: &mut [Hit],
-    small: bool,
-    loads: bool,
+    how: LaneChoice,
 ) -> bool {
-    try_trace_lanes_with(tracer, rays, hits, small, loads).is_ok()
+    try_trace_lanes_with(tracer, rays, hits, how).is_ok()
 }
 
-/// The vector traversal of `rays` into `hits`: the groups step in turn, and
-/// between their steps the lanes they flagged get their scalar work (a brick
-/// test, an answer, a new ray). `Err` when a fault or an error stopped it.
+/// A group's step: [`step`] for eight lanes, [`step_wide`] for sixteen.
+trait StepLanes {
+    /// One step of every busy lane of the group: the lanes that now need
+    /// scalar work.
+    ///
+    /// # Safety
+    ///
+    /// The processor must have the features of the step function (AVX2,
+    /// and AVX-512 for sixteen lanes).
+    unsafe fn step<const LOADS: bool>(
+        &mut self,
+        tracer: &Tracer<'_>,
+        sections: &Sections,
+    ) -> Result<u32, Abandon>;
+}
+
+impl StepLanes for Group<W> {
+    #[inline(always)]
+    unsafe fn step<const LOADS: bool>(
+        &mut self,
+        tracer: &Tracer<'_>,
+        sections: &Sections,
+    ) -> Result<u32, Abandon> {
+        // SAFETY: the caller's.
+        unsafe { step::<LOADS>(tracer, sections, self) }
+    }
+}
+
+impl StepLanes for Group<WIDE> {
+    #[inline(always)]
+    unsafe fn step<const LOADS: bool>(
+        &mut self,
+        tracer: &Tracer<'_>,
+        sections: &Sections,
+    ) -> Result<u32, Abandon> {
+        // SAFETY: the caller's.
+        unsafe { step_wide::<LOADS>(tracer, sections, self) }
+    }
+}
+
+/// [`run_groups`] with eight lanes to a group, compiled for AVX2.
 #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
 unsafe fn run<const G: usize, const LOADS: bool>(
     tracer: &Tracer<'_>,
@@ -396,11 +501,50 @@ unsafe fn run<const G: usize, const LOADS: bool>(
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
-    let mut groups = [Group::default(); G];
+    // SAFETY: compiled with the features `step` needs.
+    unsafe { run_groups::<W, G, LOADS>(tracer, sections, rays, hits) }
+}
+
+/// [`run_groups`] with sixteen lanes to a group, compiled for AVX-512 (and
+/// AVX2 for the code they share with eight lanes).
+#[target_feature(
+    enable = "avx512f,avx512bw,avx512vl,avx512dq,avx512cd,avx2,bmi1,bmi2,popcnt,lzcnt,fma"
+)]
+unsafe fn run_wide<const G: usize, const LOADS: bool>(
+    tracer: &Tracer<'_>,
+    sections: &Sections,
+    rays: &[Ray],
+    hits: &mut [Hit],
+) -> Result<(), Abandon> {
+    // SAFETY: compiled with the features `step_wide` needs.
+    unsafe { run_groups::<WIDE, G, LOADS>(tracer, sections, rays, hits) }
+}
+
+/// The vector traversal of `rays` into `hits`: `G` groups of `N` lanes step
+/// in turn, and between their steps the lanes they flagged get their scalar
+/// work (a brick test, an answer, a new ray). `Err` when a fault or an error
+/// stopped it.
+///
+/// # Safety
+///
+/// The processor must have the features of `Group<N>`'s step; inlined into
+/// [`run`] and [`run_wide`], which are compiled with them.
+#[inline(always)]
+unsafe fn run_groups<const N: usize, const G: usize, const LOADS: bool>(
+    tracer: &Tracer<'_>,
+    sections: &Sections,
+    rays: &[Ray],
+    hits: &mut [Hit],
+) -> Result<(), Abandon>
+where
+    Group<N>: StepLanes,
+{
+    const { assert!(N <= 32) };
+    let mut groups = [Group::<N>::default(); G];
     let count = rays.len().min(hits.len());
     let mut ahead = Ahead::default();
     // Per group: the lanes that need scalar work (an answer, a brick, a new ray).
-    let mut attention = [(1u32 << W) - 1; G];
+    let mut attention = [(1u32 << N) - 1; G];
     let mut busy = [0u32; G];
     loop {
         for (g, group) in groups.iter_mut().enumerate() {
@@ -468,8 +612,8 @@ unsafe fn run<const G: usize, const LOADS: bool>(
             attention[g] = if busy[g] == 0 {
                 0
             } else {
-                // SAFETY: `trace_lanes` is only called where `available()` found AVX2.
-                unsafe { step::<LOADS>(tracer, sections, group) }?
+                // SAFETY: the caller's: the processor has the step's features.
+                unsafe { group.step::<LOADS>(tracer, sections) }?
             };
         }
         if busy.iter().all(|&b| b == 0) {
@@ -499,9 +643,9 @@ struct Ahead {
 /// Gives `lane` the next ray that needs a traversal, answering on the spot
 /// those that do not; leaves it idle when the rays run out.
 #[inline(always)]
-fn refill(
+fn refill<const N: usize>(
     tracer: &Tracer<'_>,
-    group: &mut Group,
+    group: &mut Group<N>,
     lane: usize,
     ahead: &mut Ahead,
     rays: &[Ray],
@@ -1194,9 +1338,9 @@ macro_rules! sti {
 unsafe fn step<const LOADS: bool>(
     tracer: &Tracer<'_>,
     s: &Sections,
-    g: &mut Group,
+    g: &mut Group<W>,
 ) -> Result<u32, Abandon> {
-    let g_ptr: *mut Group = g;
+    let g_ptr: *mut Group<W> = g;
     let mut word_out = [0i32; W];
     // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
     // offset in the group's stacks.
@@ -1641,6 +1785,419 @@ fn popcount8(v: __m256i) -> __m256i {
     let lo = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(v, low));
     let hi = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(_mm256_srli_epi32::<4>(v), low));
     _mm256_add_epi32(lo, hi)
+}
+
+macro_rules! ldf_wide {
+    ($a:expr) => {
+        _mm512_loadu_ps($a.as_ptr())
+    };
+}
+macro_rules! ldi_wide {
+    ($a:expr) => {
+        _mm512_loadu_si512($a.as_ptr().cast())
+    };
+}
+macro_rules! stf_wide {
+    ($a:expr, $v:expr) => {
+        _mm512_storeu_ps($a.as_mut_ptr(), $v)
+    };
+}
+macro_rules! sti_wide {
+    ($a:expr, $v:expr) => {
+        _mm512_storeu_si512($a.as_mut_ptr().cast(), $v)
+    };
+}
+
+/// [`step`] for a group of sixteen lanes: the same operations per lane, on
+/// 512-bit vectors, with mask registers where [`step`] has vectors of
+/// all-ones lanes. Returns the lanes that now need scalar work.
+///
+/// # Safety
+///
+/// The processor must have the features of [`wide_available`].
+#[inline]
+#[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq,avx512cd")]
+unsafe fn step_wide<const LOADS: bool>(
+    tracer: &Tracer<'_>,
+    s: &Sections,
+    g: &mut Group<WIDE>,
+) -> Result<u32, Abandon> {
+    let g_ptr: *mut Group<WIDE> = g;
+    let mut word_out = [0i32; WIDE];
+    // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
+    // offset in the group's stacks.
+    let mut frame_out = [0u64; WIDE];
+    let mut frame_at_out = [0i32; WIDE];
+    let mut level_out = [0i32; WIDE];
+    let mut rank_out = [0i32; WIDE];
+    let mut fetch_out = [0i32; WIDE];
+    let (choose_bits, slow_bits, done_bits);
+    // SAFETY: as in `step`: whole `[_; WIDE]` arrays of the group and of
+    // local arrays are loaded and stored, and every gather reads only the
+    // lanes of its mask, at the offsets `step` reads (table entries at
+    // in-range indices, stack frames of levels < LEVEL_SLOTS of lanes <
+    // WIDE, node words checked against their section's length just before,
+    // pointers at offsets <= `fast_limit`); with scalar loads the other
+    // lanes read the four bytes at the gather's base (`gather_wide`).
+    unsafe {
+        let g = &mut *g_ptr;
+        let zero = _mm512_setzero_si512();
+        let one = _mm512_set1_epi32(1);
+        let byte = _mm512_set1_epi32(0xff);
+        let base: *const i32 = s.base.cast();
+        let tables = |t: &[i32; LEVEL_TABLE]| {
+            [0, 16].map(|i| _mm512_loadu_si512(t[i..i + 16].as_ptr().cast()))
+        };
+        let (offsets, lens, widths) = (tables(&s.offset), tables(&s.len), tables(&s.width));
+        let fast_limits = tables(&s.fast_limit);
+
+        let state = ldi_wide!(g.state);
+        let visit = _mm512_cmpeq_epi32_mask(state, _mm512_set1_epi32(state::VISIT));
+        let cont = _mm512_cmpeq_epi32_mask(state, _mm512_set1_epi32(state::CONT));
+        let mut level = ldi_wide!(g.level);
+        let target = ldi_wide!(g.target);
+        let neg = ldi_wide!(g.neg);
+
+        // Visit: the header, bounds-checked like `Level::header_or_fault`.
+        let len = by_level_wide(&lens, level);
+        let inside = _mm512_cmplt_epu32_mask(target, _mm512_srli_epi32::<2>(len));
+        if visit & !inside != 0 {
+            return Err(Abandon);
+        }
+        let header = gather_wide::<LOADS>(
+            zero,
+            base,
+            _mm512_add_epi32(
+                by_level_wide(&offsets, level),
+                _mm512_slli_epi32::<2>(target),
+            ),
+            visit,
+        );
+        let (ox, oy, oz) = (ldf_wide!(g.ox), ldf_wide!(g.oy), ldf_wide!(g.oz));
+        let (ix, iy, iz) = (ldf_wide!(g.ix), ldf_wide!(g.iy), ldf_wide!(g.iz));
+        let (mut px, mut py, mut pz) = (ldf_wide!(g.px), ldf_wide!(g.py), ldf_wide!(g.pz));
+        let mut size = ldf_wide!(g.size);
+        let half = _mm512_mul_ps(size, _mm512_set1_ps(0.5));
+        // The plane parameters, as `resume` computes them: (p - o) * inv.
+        let plane = |p: __m512, o: __m512, i: __m512| _mm512_mul_ps(_mm512_sub_ps(p, o), i);
+        let t_lo = [plane(px, ox, ix), plane(py, oy, iy), plane(pz, oz, iz)];
+        let t_mid = [
+            plane(_mm512_add_ps(px, half), ox, ix),
+            plane(_mm512_add_ps(py, half), oy, iy),
+            plane(_mm512_add_ps(pz, half), oz, iz),
+        ];
+        let t_hi = [
+            plane(_mm512_add_ps(px, size), ox, ix),
+            plane(_mm512_add_ps(py, size), oy, iy),
+            plane(_mm512_add_ps(pz, size), oz, iz),
+        ];
+        // `segment`: `_mm512_max_ps`/`_mm512_min_ps` are `max`/`min` of
+        // tracer.rs exactly, as their 256-bit forms are.
+        let enter = _mm512_max_ps(
+            _mm512_max_ps(_mm512_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
+            ldf_wide!(g.tmin),
+        );
+        let exit = _mm512_min_ps(
+            _mm512_min_ps(_mm512_min_ps(t_hi[0], t_hi[1]), t_hi[2]),
+            ldf_wide!(g.tmax),
+        );
+        let nonempty = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(enter, exit);
+        // The CHAIN key, as `chain` computes it.
+        let le_enter = t_mid.map(|t| _mm512_cmp_ps_mask::<_CMP_LE_OQ>(t, enter));
+        let crossing = t_mid.map(|t| {
+            _mm512_cmp_ps_mask::<_CMP_GT_OQ>(t, enter) & _mm512_cmp_ps_mask::<_CMP_LE_OQ>(t, exit)
+        });
+        let order = [
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t_mid[0], t_mid[1]),
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t_mid[0], t_mid[2]),
+            _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t_mid[1], t_mid[2]),
+        ];
+        let key = _mm512_or_si512(
+            _mm512_or_si512(bits3_wide(le_enter, 0), bits3_wide(crossing, 3)),
+            bits3_wide(order, 6),
+        );
+        let chain = table_bytes_wide::<LOADS>(
+            &CHAIN_PADDED,
+            _mm512_or_si512(_mm512_slli_epi32::<9>(neg), key),
+            visit,
+        );
+        let node_mask = _mm512_and_si512(header, byte);
+        let visited = _mm512_maskz_and_epi32(nonempty, chain, node_mask);
+        let mut word = _mm512_mask_blend_epi32(visit, ldi_wide!(g.word), target);
+        let mut mask = _mm512_mask_blend_epi32(visit, ldi_wide!(g.mask), node_mask);
+        let mut remaining = _mm512_mask_blend_epi32(visit, ldi_wide!(g.remaining), visited);
+
+        // No child left: back to the nearest node of the path that has
+        // children left, at once (as in `step`).
+        let mut pending = ldi_wide!(g.pending);
+        let active = visit | cont;
+        let empty = active & _mm512_cmpeq_epi32_mask(remaining, zero);
+        let above = _mm512_and_si512(
+            pending,
+            _mm512_sub_epi32(_mm512_sllv_epi32(one, level), one),
+        );
+        let at_top = empty & _mm512_cmpeq_epi32_mask(above, zero);
+        let pop = empty & !at_top;
+        // The highest set bit of `above` (non-zero where `pop`).
+        let highest = _mm512_sub_epi32(_mm512_set1_epi32(31), _mm512_lzcnt_epi32(above));
+        level = _mm512_mask_blend_epi32(pop, level, highest);
+        let lane_bytes = _mm512_setr_epi32(
+            0, 256, 512, 768, 1024, 1280, 1536, 1792, 2048, 2304, 2560, 2816, 3072, 3328, 3584,
+            3840,
+        );
+        let frame_at = _mm512_add_epi32(lane_bytes, _mm512_slli_epi32::<3>(level));
+        let stacks: *const i32 = g.stacks.as_ptr().cast();
+        word = gather_wide::<LOADS>(word, stacks, frame_at, pop);
+        let f_bits = gather_wide::<LOADS>(zero, stacks.add(1), frame_at, pop);
+        mask = _mm512_mask_blend_epi32(pop, mask, _mm512_and_si512(f_bits, byte));
+        remaining = _mm512_mask_blend_epi32(
+            pop,
+            remaining,
+            _mm512_and_si512(_mm512_srli_epi32::<8>(f_bits), byte),
+        );
+        // That node's corner and edge (exact integers).
+        let edge = _mm512_sllv_epi32(one, _mm512_sub_epi32(_mm512_set1_epi32(s.depth), level));
+        let corner = |p: __m512| {
+            let cell = _mm512_and_si512(_mm512_cvttps_epi32(p), _mm512_sub_epi32(zero, edge));
+            _mm512_mask_blend_ps(pop, p, _mm512_cvtepi32_ps(cell))
+        };
+        px = corner(px);
+        py = corner(py);
+        pz = corner(pz);
+        size = _mm512_mask_blend_ps(pop, size, _mm512_cvtepi32_ps(edge));
+        let half = _mm512_mul_ps(size, _mm512_set1_ps(0.5));
+
+        // The next child, front to back, and its pointer.
+        let choose = active & !at_top;
+        let child = table_bytes_wide::<LOADS>(
+            &FIRST_PADDED,
+            _mm512_or_si512(_mm512_slli_epi32::<8>(neg), remaining),
+            choose,
+        );
+        let bit = _mm512_maskz_sllv_epi32(choose, one, child);
+        remaining = _mm512_andnot_si512(bit, remaining);
+        let level_bit = _mm512_sllv_epi32(one, level);
+        pending = _mm512_or_si512(
+            _mm512_andnot_si512(level_bit, pending),
+            _mm512_maskz_mov_epi32(_mm512_cmpneq_epi32_mask(remaining, zero), level_bit),
+        );
+        let rank = popcount8_wide(_mm512_and_si512(mask, _mm512_sub_epi32(bit, one)));
+        let fast_limit = by_level_wide(&fast_limits, level);
+        let width = by_level_wide(&widths, level);
+        // The low `width` bytes: all of them for width 4 (a shift by 32 gives 0).
+        let pointer_mask =
+            _mm512_sub_epi32(_mm512_sllv_epi32(one, _mm512_slli_epi32::<3>(width)), one);
+        let at = _mm512_add_epi32(
+            _mm512_add_epi32(_mm512_slli_epi32::<2>(word), _mm512_set1_epi32(4)),
+            _mm512_mullo_epi32(rank, width),
+        );
+        let cut = _mm512_cmpgt_epi32_mask(at, fast_limit);
+        let fast = choose & !cut;
+        let pointer = _mm512_and_si512(
+            gather_wide::<LOADS>(
+                zero,
+                base,
+                _mm512_add_epi32(by_level_wide(&offsets, level), at),
+                fast,
+            ),
+            pointer_mask,
+        );
+        let mirrored = _mm512_xor_si512(child, neg);
+        let m = [1, 2, 4].map(|b| _mm512_test_epi32_mask(mirrored, _mm512_set1_epi32(b)));
+        // `p + (half & mask)` as in `step`: +0.0 in the other lanes.
+        let cx = _mm512_add_ps(px, _mm512_maskz_mov_ps(m[0], half));
+        let cy = _mm512_add_ps(py, _mm512_maskz_mov_ps(m[1], half));
+        let cz = _mm512_add_ps(pz, _mm512_maskz_mov_ps(m[2], half));
+        // The frame of this node, to come back to: `Frame`'s bytes (`word`,
+        // then the bits), interleaved into eight 64-bit words a vector.
+        let frame_bits = _mm512_or_si512(
+            _mm512_or_si512(mask, _mm512_slli_epi32::<8>(remaining)),
+            _mm512_slli_epi32::<16>(child),
+        );
+        let low_lanes = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
+        let high_lanes =
+            _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
+        sti_wide!(
+            frame_out[..8],
+            _mm512_permutex2var_epi32(word, low_lanes, frame_bits)
+        );
+        sti_wide!(
+            frame_out[8..],
+            _mm512_permutex2var_epi32(word, high_lanes, frame_bits)
+        );
+        let frame_level =
+            _mm512_mask_blend_epi32(choose, _mm512_set1_epi32(LEVEL_SLOTS as i32 - 1), level);
+        sti_wide!(
+            frame_at_out,
+            _mm512_add_epi32(lane_bytes, _mm512_slli_epi32::<3>(frame_level))
+        );
+        let child_level = _mm512_add_epi32(level, one);
+        let at_stop = choose & _mm512_cmpeq_epi32_mask(child_level, ldi_wide!(g.stop));
+        // What to prefetch: the child's header, or the brick's leaf mask.
+        let scale = _mm512_mask_blend_epi32(at_stop, _mm512_set1_epi32(2), _mm512_set1_epi32(3));
+        sti_wide!(
+            fetch_out,
+            _mm512_add_epi32(
+                by_level_wide(&offsets, child_level),
+                _mm512_sllv_epi32(pointer, scale)
+            )
+        );
+        let report = ldi_wide!(g.report);
+        let reports = _mm512_test_epi32_mask(report, report);
+        let found = at_stop & reports;
+        let brick = at_stop & !reports;
+        let descend = choose & !at_stop;
+        let mut next = _mm512_mask_blend_epi32(active, state, _mm512_set1_epi32(state::CONT));
+        next = _mm512_mask_blend_epi32(descend, next, _mm512_set1_epi32(state::VISIT));
+        next = _mm512_mask_blend_epi32(brick, next, _mm512_set1_epi32(state::BRICK));
+        next = _mm512_mask_blend_epi32(found, next, _mm512_set1_epi32(state::FOUND));
+        next = _mm512_mask_blend_epi32(at_top, next, _mm512_set1_epi32(state::MISS));
+        sti_wide!(g.state, next);
+        sti_wide!(
+            g.level,
+            _mm512_mask_blend_epi32(descend, level, child_level)
+        );
+        stf_wide!(g.px, _mm512_mask_blend_ps(descend, px, cx));
+        stf_wide!(g.py, _mm512_mask_blend_ps(descend, py, cy));
+        stf_wide!(g.pz, _mm512_mask_blend_ps(descend, pz, cz));
+        stf_wide!(g.size, _mm512_mask_blend_ps(descend, size, half));
+        // Every lane's child corner (see `step`).
+        stf_wide!(g.bx, cx);
+        stf_wide!(g.by, cy);
+        stf_wide!(g.bz, cz);
+        sti_wide!(g.target, _mm512_mask_blend_epi32(choose, target, pointer));
+        sti_wide!(g.word, word);
+        sti_wide!(g.mask, mask);
+        sti_wide!(g.remaining, remaining);
+        sti_wide!(g.pending, pending);
+        choose_bits = u32::from(choose);
+        slow_bits = u32::from(cut & choose);
+        // Only for the scalar pointer reads, which are rare.
+        if slow_bits != 0 {
+            sti_wide!(word_out, word);
+            sti_wide!(level_out, frame_level);
+            sti_wide!(rank_out, rank);
+        }
+        done_bits = u32::from(at_stop | at_top);
+    }
+    // Scalar tail, as in `step`.
+    let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
+    for lane in 0..WIDE {
+        // SAFETY: `frame_at_out[lane]` is `256 * lane + 8 * level` with
+        // `lane < WIDE` and `level < LEVEL_SLOTS`: the frame of that level in
+        // that lane's stack, written as the eight bytes of a `Frame`.
+        unsafe {
+            stacks
+                .add(frame_at_out[lane] as usize)
+                .cast::<u64>()
+                .write_unaligned(frame_out[lane]);
+        }
+        // A prefetch never faults.
+        prefetch_address(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
+    }
+    let mut lanes = slow_bits & choose_bits;
+    while lanes != 0 {
+        let lane = lanes.trailing_zeros() as usize;
+        lanes &= lanes - 1;
+        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
+        let mut fault = None;
+        let pointer = tracer.levels[level].pointer_or_fault(
+            level as u8,
+            word_out[lane] as u32,
+            rank_out[lane] as u32,
+            &mut fault,
+        );
+        if fault.is_some() {
+            return Err(Abandon);
+        }
+        g.target[lane] = pointer as i32;
+    }
+    Ok(done_bits)
+}
+
+/// [`by_level`] for sixteen lanes: one two-vector permute (levels < 32).
+#[inline]
+#[target_feature(enable = "avx512f")]
+fn by_level_wide(table: &[__m512i; 2], level: __m512i) -> __m512i {
+    _mm512_permutex2var_epi32(table[0], level, table[1])
+}
+
+/// [`bits3`] for sixteen lanes, shifted left by `shift`.
+#[inline]
+#[target_feature(enable = "avx512f")]
+fn bits3_wide(m: [__mmask16; 3], shift: i32) -> __m512i {
+    let bit = |m: __mmask16, b: i32| _mm512_maskz_mov_epi32(m, _mm512_set1_epi32(b << shift));
+    _mm512_or_si512(_mm512_or_si512(bit(m[0], 1), bit(m[1], 2)), bit(m[2], 4))
+}
+
+/// [`popcount8`] for sixteen lanes.
+#[inline]
+#[target_feature(enable = "avx512f,avx512bw")]
+fn popcount8_wide(v: __m512i) -> __m512i {
+    // Bits set in 0..16, a byte each, in every 128-bit lane.
+    let nibbles = _mm512_set4_epi32(0x0403_0302, 0x0302_0201, 0x0302_0201, 0x0201_0100);
+    let low = _mm512_set1_epi32(0x0f);
+    let lo = _mm512_shuffle_epi8(nibbles, _mm512_and_si512(v, low));
+    let hi = _mm512_shuffle_epi8(nibbles, _mm512_and_si512(_mm512_srli_epi32::<4>(v), low));
+    _mm512_add_epi32(lo, hi)
+}
+
+/// [`table_bytes`] for sixteen lanes.
+///
+/// # Safety
+///
+/// The processor must have AVX-512F, and `index + 4 <= table.len()` in the
+/// lanes of `lanes`.
+#[inline]
+#[target_feature(enable = "avx512f")]
+unsafe fn table_bytes_wide<const LOADS: bool>(
+    table: &[u8],
+    index: __m512i,
+    lanes: __mmask16,
+) -> __m512i {
+    let zero = _mm512_setzero_si512();
+    // SAFETY: the caller keeps the loads of the lanes in `lanes` inside the table.
+    let words = unsafe { gather_wide::<LOADS>(zero, table.as_ptr().cast(), index, lanes) };
+    _mm512_and_si512(words, _mm512_set1_epi32(0xff))
+}
+
+/// [`gather`] for sixteen lanes: the 32-bit words at byte offsets `offsets`
+/// from `base` in the lanes of `lanes`, `src`'s in the others; with `LOADS`,
+/// sixteen scalar loads put together.
+///
+/// # Safety
+///
+/// The processor must have AVX-512F. The four bytes at `base + offset` must
+/// be readable for the offsets of the lanes in `lanes`, and, where `LOADS`,
+/// the four bytes at `base` itself (the other lanes load those).
+#[inline]
+#[target_feature(enable = "avx512f")]
+unsafe fn gather_wide<const LOADS: bool>(
+    src: __m512i,
+    base: *const i32,
+    offsets: __m512i,
+    lanes: __mmask16,
+) -> __m512i {
+    if !LOADS {
+        // SAFETY: the caller keeps the reads of the lanes in `lanes` readable.
+        return unsafe { _mm512_mask_i32gather_epi32::<1>(src, lanes, offsets, base) };
+    }
+    let mut at = [0u32; WIDE];
+    // SAFETY: a store of sixteen 32-bit words into a sixteen-word array.
+    unsafe {
+        _mm512_storeu_si512(
+            at.as_mut_ptr().cast(),
+            _mm512_maskz_mov_epi32(lanes, offsets),
+        )
+    };
+    let base: *const u8 = base.cast();
+    // SAFETY: the caller keeps these four bytes readable: those of a lane in
+    // `lanes`, or `base` itself for the others (their offsets are 0).
+    let words: [i32; WIDE] =
+        std::array::from_fn(|k| unsafe { base.add(at[k] as usize).cast::<i32>().read_unaligned() });
+    // SAFETY: a load of sixteen 32-bit words from a sixteen-word array.
+    let words = unsafe { _mm512_loadu_si512(words.as_ptr().cast()) };
+    _mm512_mask_blend_epi32(lanes, src, words)
 }
 
 #[cfg(test)]

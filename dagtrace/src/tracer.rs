@@ -488,6 +488,49 @@ impl Gathers {
     }
 }
 
+/// How many rays one step of the batch API's vector lanes advances at once
+/// ([`Tracer::with_lanes`]): eight to an AVX2 vector or sixteen to an AVX-512
+/// vector. The answers are identical; the speed is not. Coherent rays traced
+/// as packets do not use the lanes (the rays a packet does not take do).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Lanes {
+    /// [`Lanes::Sixteen`] where the processor has AVX-512 (F, BW, VL, DQ, CD)
+    /// and fast gather instructions (not AMD's Zen 4, whose 512-bit
+    /// operations run as two halves and whose gathers [`Gathers::Auto`]
+    /// replaces by scalar loads: not measured there), else [`Lanes::Eight`].
+    #[default]
+    Auto,
+    /// Eight rays to an AVX2 vector.
+    Eight,
+    /// Sixteen rays to an AVX-512 vector, where the processor has AVX-512
+    /// (else eight).
+    Sixteen,
+}
+
+impl Lanes {
+    /// Whether the lanes are sixteen to a vector on this processor.
+    fn wide(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            match self {
+                Lanes::Eight => false,
+                Lanes::Sixteen => crate::simd::wide_available(),
+                Lanes::Auto => {
+                    static WIDE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+                    *WIDE.get_or_init(|| {
+                        crate::simd::wide_available() && !crate::simd::slow_gathers()
+                    })
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = self;
+            false
+        }
+    }
+}
+
 /// A ray tracer over one DAG. Cheap to share between threads (`Sync`).
 ///
 /// It borrows the file's bytes (zero-copy); the only thing computed when it is
@@ -519,6 +562,9 @@ pub struct Tracer<'a> {
     /// Whether the vector lanes read with scalar loads rather than gather
     /// instructions ([`Gathers`], resolved).
     pub(crate) gather_loads: bool,
+    /// Whether the vector lanes are sixteen to an AVX-512 vector ([`Lanes`],
+    /// resolved).
+    pub(crate) wide_lanes: bool,
     colors: Option<&'a [u8]>,
     /// Level of the cells whose union `bounds` encloses.
     bounds_level: u8,
@@ -586,6 +632,7 @@ impl<'a> Tracer<'a> {
             packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
             small: dag_bytes <= SMALL_DAG_BYTES,
             gather_loads: Gathers::Auto.loads(),
+            wide_lanes: Lanes::Auto.wide(),
             colors: dag.colors(),
             bounds_level: 0,
             bounds: [(Vec3A::ZERO, Vec3A::splat((1u32 << depth) as f32)); 8],
@@ -659,7 +706,7 @@ impl<'a> Tracer<'a> {
         self
     }
 
-    /// How the batch API's vector lanes read the nodes of eight rays at once
+    /// How the batch API's vector lanes read the nodes of their rays
     /// (default [`Gathers::Auto`]). The answers are the same either way; only
     /// the speed differs, by processor.
     pub fn with_gathers(mut self, gathers: Gathers) -> Self {
@@ -674,6 +721,25 @@ impl<'a> Tracer<'a> {
             Gathers::ScalarLoads
         } else {
             Gathers::Instruction
+        }
+    }
+
+    /// How many rays a step of the batch API's vector lanes advances at once
+    /// (default [`Lanes::Auto`]). The answers are the same either way; only
+    /// the speed differs, by processor.
+    pub fn with_lanes(mut self, lanes: Lanes) -> Self {
+        self.wide_lanes = lanes.wide();
+        self
+    }
+
+    /// How many rays a step of the vector lanes advances at once on this
+    /// processor: [`Lanes::Eight`] or [`Lanes::Sixteen`] (what [`Lanes::Auto`]
+    /// chose, where set so; eight where the processor has no AVX-512).
+    pub fn lanes(&self) -> Lanes {
+        if self.wide_lanes {
+            Lanes::Sixteen
+        } else {
+            Lanes::Eight
         }
     }
 
@@ -2265,26 +2331,27 @@ pub(crate) mod tests {
         }
         #[cfg(target_arch = "x86_64")]
         if crate::simd::available() {
-            // Both numbers of groups in flight, whatever the DAG's size, and
-            // both ways of gathering, whatever the processor.
-            for small in [true, false] {
-                for loads in [false, true] {
-                    let mut vector = vec![Hit::MISS; rays.len()];
-                    assert!(
-                        crate::simd::trace_lanes_or_give_up(
-                            tracer,
-                            rays,
-                            &mut vector,
-                            small,
-                            loads
-                        ),
-                        "the vector lanes gave up on a valid DAG"
-                    );
-                    for ((ray, a), b) in rays.iter().zip(&single).zip(&vector) {
-                        assert_eq!(
-                            a, b,
-                            "vector lanes (small DAG groups: {small}, scalar loads: {loads}): {ray:?}"
+            // Both numbers of groups in flight, whatever the DAG's size, both
+            // ways of gathering, whatever the processor, and eight and (where
+            // the processor has AVX-512) sixteen lanes.
+            let widths: &[bool] = if crate::simd::wide_available() {
+                &[false, true]
+            } else {
+                eprintln!("no AVX-512 on this processor: the sixteen lanes were not tested");
+                &[false]
+            };
+            for &wide in widths {
+                for small in [true, false] {
+                    for loads in [false, true] {
+                        let mut vector = vec![Hit::MISS; rays.len()];
+                        let how = crate::simd::LaneChoice { small, loads, wide };
+                        assert!(
+                            crate::simd::trace_lanes_or_give_up(tracer, rays, &mut vector, how),
+                            "the vector lanes gave up on a valid DAG"
                         );
+                        for ((ray, a), b) in rays.iter().zip(&single).zip(&vector) {
+                            assert_eq!(a, b, "vector lanes ({how:?}): {ray:?}");
+                        }
                     }
                 }
             }
@@ -2361,26 +2428,30 @@ pub(crate) mod tests {
                 continue;
             };
             let rays = rays(&mut rng, 40);
-            // Ray by ray: the same answer or the same error.
-            for ray in &rays {
-                let mut hit = [Hit::MISS];
-                let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
-                match (tracer.trace(ray), batch) {
-                    (Ok(single), Ok(())) => assert_eq!(single, hit[0]),
-                    (Err(a), Err(b)) => {
-                        assert_eq!(a, b);
-                        errors += 1;
+            // Eight and (where the processor has AVX-512) sixteen lanes.
+            for lanes in [Lanes::Eight, Lanes::Sixteen] {
+                let tracer = tracer.clone().with_lanes(lanes);
+                // Ray by ray: the same answer or the same error.
+                for ray in &rays {
+                    let mut hit = [Hit::MISS];
+                    let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
+                    match (tracer.trace(ray), batch) {
+                        (Ok(single), Ok(())) => assert_eq!(single, hit[0]),
+                        (Err(a), Err(b)) => {
+                            assert_eq!(a, b);
+                            errors += 1;
+                        }
+                        (a, b) => panic!("single {a:?}, batch {b:?}"),
                     }
-                    (a, b) => panic!("single {a:?}, batch {b:?}"),
                 }
+                // A whole batch fails exactly when one of its rays does.
+                let mut hits = vec![Hit::MISS; rays.len()];
+                let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
+                assert_eq!(
+                    tracer.trace_sequential_into(&rays, &mut hits).is_err(),
+                    any_error
+                );
             }
-            // A whole batch fails exactly when one of its rays does.
-            let mut hits = vec![Hit::MISS; rays.len()];
-            let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
-            assert_eq!(
-                tracer.trace_sequential_into(&rays, &mut hits).is_err(),
-                any_error
-            );
         }
         assert!(
             errors > 0,

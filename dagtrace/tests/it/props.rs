@@ -3,7 +3,7 @@
 
 use dagfmt::batch::Ray;
 use dagfmt::{AttributeKind, Dag};
-use dagtrace::{Gathers, Tracer};
+use dagtrace::{Gathers, Lanes, Tracer};
 use proptest::prelude::*;
 
 use crate::common::{Rng, build};
@@ -162,15 +162,18 @@ fn check_scene(
         .map(|_| random_ray(depth, &voxels, root_min, root_size, &mut rng))
         .collect();
     let hits = tracer.trace_batch(&rays).expect("valid DAG traces");
-    // Both ways the vector lanes can read (the default picks one by
-    // processor) answer alike.
+    // Both ways the vector lanes can read and both widths (the default picks
+    // them by processor; sixteen lanes where it has AVX-512) answer alike.
     for gathers in [Gathers::Instruction, Gathers::ScalarLoads] {
-        let other = tracer
-            .clone()
-            .with_gathers(gathers)
-            .trace_batch(&rays)
-            .expect("valid DAG traces");
-        prop_assert!(other == hits, "{gathers:?} answers differently");
+        for lanes in [Lanes::Eight, Lanes::Sixteen] {
+            let other = tracer
+                .clone()
+                .with_gathers(gathers)
+                .with_lanes(lanes)
+                .trace_batch(&rays)
+                .expect("valid DAG traces");
+            prop_assert!(other == hits, "{gathers:?}, {lanes:?} answer differently");
+        }
     }
     for (ray, hit) in rays.iter().zip(&hits) {
         if let Err(why) = reference.check(ray, hit) {

@@ -1306,6 +1306,90 @@ pub(crate) unsafe fn setup4(tracer: &Tracer<'_>, rays: &[Ray; 4], out: &mut [Pre
     usual
 }
 
+/// What a step of `N` lanes leaves to its scalar tail ([`StepOut::write_back`]),
+/// per lane.
+struct StepOut<const N: usize> {
+    /// The frame of the node the lane stands on, as `Frame`'s eight bytes.
+    frame: [u64; N],
+    /// Where it goes: its byte offset in the group's stacks.
+    frame_at: [i32; N],
+    /// Byte offset from the sections' base of the child's header or the
+    /// brick's leaf mask, to prefetch.
+    fetch: [i32; N],
+    /// For the pointers the gather left: the node's word, its level and the
+    /// child's rank (stored only when some lane needs them).
+    word: [i32; N],
+    level: [i32; N],
+    rank: [i32; N],
+}
+
+impl<const N: usize> StepOut<N> {
+    #[inline(always)]
+    fn new() -> Self {
+        StepOut {
+            frame: [0; N],
+            frame_at: [0; N],
+            fetch: [0; N],
+            word: [0; N],
+            level: [0; N],
+            rank: [0; N],
+        }
+    }
+
+    /// A step's scalar tail: each lane's frame stored and its next read
+    /// prefetched, then the pointers of the lanes in `slow` read one by one
+    /// (near the file's end, or outside their section in malformed files).
+    ///
+    /// # Safety
+    ///
+    /// `frame_at[lane]` must be `256 * lane + 8 * level` with `level <
+    /// LEVEL_SLOTS`, for every lane.
+    #[inline(always)]
+    unsafe fn write_back(
+        &self,
+        tracer: &Tracer<'_>,
+        s: &Sections,
+        g: &mut Group<N>,
+        slow: u32,
+    ) -> Result<(), Abandon> {
+        const { assert!(std::mem::size_of::<Stack>() == 256) };
+        let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
+        for lane in 0..N {
+            // SAFETY: the caller's: the frame of a level < LEVEL_SLOTS in the
+            // stack of lane `lane < N` (`Stack` is 256 bytes, `Frame` 8),
+            // written as the eight bytes of a `Frame` (`repr(C)`, plain
+            // integers).
+            unsafe {
+                stacks
+                    .add(self.frame_at[lane] as usize)
+                    .cast::<u64>()
+                    .write_unaligned(self.frame[lane]);
+            }
+            // A prefetch never faults: lanes without a child fetch some byte
+            // of the file, and a wrong pointer just fetches a useless line.
+            prefetch_address(s.base.wrapping_add(self.fetch[lane] as u32 as usize));
+        }
+        let mut lanes = slow;
+        while lanes != 0 {
+            let lane = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            let level = self.level[lane] as usize & (LEVEL_SLOTS - 1);
+            let mut fault = None;
+            let pointer = tracer.levels[level].pointer_or_fault(
+                level as u8,
+                self.word[lane] as u32,
+                self.rank[lane] as u32,
+                &mut fault,
+            );
+            if fault.is_some() {
+                return Err(Abandon);
+            }
+            g.target[lane] = pointer as i32;
+        }
+        Ok(())
+    }
+}
+
 macro_rules! ldf {
     ($a:expr) => {
         _mm256_loadu_ps($a.as_ptr())
@@ -1341,14 +1425,7 @@ unsafe fn step<const LOADS: bool>(
     g: &mut Group<W>,
 ) -> Result<u32, Abandon> {
     let g_ptr: *mut Group<W> = g;
-    let mut word_out = [0i32; W];
-    // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
-    // offset in the group's stacks.
-    let mut frame_out = [0u64; W];
-    let mut frame_at_out = [0i32; W];
-    let mut level_out = [0i32; W];
-    let mut rank_out = [0i32; W];
-    let mut fetch_out = [0i32; W];
+    let mut out = StepOut::<W>::new();
     let (choose_bits, slow_bits, done_bits);
     // SAFETY: the loads and stores are of whole `[_; W]` arrays of the group
     // and of local arrays. Every gather reads only lanes whose mask is set:
@@ -1535,16 +1612,16 @@ unsafe fn step<const LOADS: bool>(
         let frames_a = _mm256_unpacklo_epi32(word, frame_bits);
         let frames_b = _mm256_unpackhi_epi32(word, frame_bits);
         sti!(
-            frame_out[..4],
+            out.frame[..4],
             _mm256_permute2x128_si256::<0x20>(frames_a, frames_b)
         );
         sti!(
-            frame_out[4..],
+            out.frame[4..],
             _mm256_permute2x128_si256::<0x31>(frames_a, frames_b)
         );
         let frame_level = blend(_mm256_set1_epi32(LEVEL_SLOTS as i32 - 1), level, choose);
         sti!(
-            frame_at_out,
+            out.frame_at,
             _mm256_add_epi32(lane_bytes, _mm256_slli_epi32::<3>(frame_level))
         );
         let child_level = _mm256_add_epi32(level, one);
@@ -1552,7 +1629,7 @@ unsafe fn step<const LOADS: bool>(
         // What to prefetch: the child's header, or the brick's leaf mask.
         let scale = _mm256_blendv_epi8(_mm256_set1_epi32(2), _mm256_set1_epi32(3), at_stop);
         sti!(
-            fetch_out,
+            out.fetch,
             _mm256_add_epi32(
                 by_level(&offsets, child_level),
                 _mm256_sllv_epi32(pointer, scale)
@@ -1592,48 +1669,16 @@ unsafe fn step<const LOADS: bool>(
         // Only for the scalar pointer reads, which are rare: at the end of
         // the file, or outside a section (malformed files).
         if slow_bits != 0 {
-            sti!(word_out, word);
-            sti!(level_out, frame_level);
-            sti!(rank_out, rank);
+            sti!(out.word, word);
+            sti!(out.level, frame_level);
+            sti!(out.rank, rank);
         }
         done_bits = lanes(_mm256_or_si256(at_stop, at_top));
     }
 
-    // Scalar tail: frames and prefetches, then the pointers the gather left
-    // (near the file's end, or outside their section in malformed files).
-    let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
-    for lane in 0..W {
-        // SAFETY: `frame_at_out[lane]` is `256 * lane + 8 * level` with
-        // `lane < W` and `level < LEVEL_SLOTS`: the frame of that level in
-        // that lane's stack (`Stack` is 256 bytes, `Frame` 8), written as
-        // the eight bytes of a `Frame` (`repr(C)`, plain integers).
-        unsafe {
-            stacks
-                .add(frame_at_out[lane] as usize)
-                .cast::<u64>()
-                .write_unaligned(frame_out[lane]);
-        }
-        // A prefetch never faults: lanes without a child fetch some byte of
-        // the file, and a wrong pointer just fetches a useless line.
-        prefetch_address(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
-    }
-    let mut lanes = slow_bits & choose_bits;
-    while lanes != 0 {
-        let lane = lanes.trailing_zeros() as usize;
-        lanes &= lanes - 1;
-        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
-        let mut fault = None;
-        let pointer = tracer.levels[level].pointer_or_fault(
-            level as u8,
-            word_out[lane] as u32,
-            rank_out[lane] as u32,
-            &mut fault,
-        );
-        if fault.is_some() {
-            return Err(Abandon);
-        }
-        g.target[lane] = pointer as i32;
-    }
+    // SAFETY: `out.frame_at` holds `256 * lane + 8 * level` with `level <
+    // LEVEL_SLOTS` in every lane (`frame_level` above).
+    unsafe { out.write_back(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
 }
 
@@ -1823,14 +1868,7 @@ unsafe fn step_wide<const LOADS: bool>(
     g: &mut Group<WIDE>,
 ) -> Result<u32, Abandon> {
     let g_ptr: *mut Group<WIDE> = g;
-    let mut word_out = [0i32; WIDE];
-    // Per lane: the frame to store (as `Frame`'s eight bytes) and its byte
-    // offset in the group's stacks.
-    let mut frame_out = [0u64; WIDE];
-    let mut frame_at_out = [0i32; WIDE];
-    let mut level_out = [0i32; WIDE];
-    let mut rank_out = [0i32; WIDE];
-    let mut fetch_out = [0i32; WIDE];
+    let mut out = StepOut::<WIDE>::new();
     let (choose_bits, slow_bits, done_bits);
     // SAFETY: as in `step`: whole `[_; WIDE]` arrays of the group and of
     // local arrays are loaded and stored, and every gather reads only the
@@ -2018,17 +2056,17 @@ unsafe fn step_wide<const LOADS: bool>(
         let high_lanes =
             _mm512_setr_epi32(8, 24, 9, 25, 10, 26, 11, 27, 12, 28, 13, 29, 14, 30, 15, 31);
         sti_wide!(
-            frame_out[..8],
+            out.frame[..8],
             _mm512_permutex2var_epi32(word, low_lanes, frame_bits)
         );
         sti_wide!(
-            frame_out[8..],
+            out.frame[8..],
             _mm512_permutex2var_epi32(word, high_lanes, frame_bits)
         );
         let frame_level =
             _mm512_mask_blend_epi32(choose, _mm512_set1_epi32(LEVEL_SLOTS as i32 - 1), level);
         sti_wide!(
-            frame_at_out,
+            out.frame_at,
             _mm512_add_epi32(lane_bytes, _mm512_slli_epi32::<3>(frame_level))
         );
         let child_level = _mm512_add_epi32(level, one);
@@ -2036,7 +2074,7 @@ unsafe fn step_wide<const LOADS: bool>(
         // What to prefetch: the child's header, or the brick's leaf mask.
         let scale = _mm512_mask_blend_epi32(at_stop, _mm512_set1_epi32(2), _mm512_set1_epi32(3));
         sti_wide!(
-            fetch_out,
+            out.fetch,
             _mm512_add_epi32(
                 by_level_wide(&offsets, child_level),
                 _mm512_sllv_epi32(pointer, scale)
@@ -2074,44 +2112,15 @@ unsafe fn step_wide<const LOADS: bool>(
         slow_bits = u32::from(cut & choose);
         // Only for the scalar pointer reads, which are rare.
         if slow_bits != 0 {
-            sti_wide!(word_out, word);
-            sti_wide!(level_out, frame_level);
-            sti_wide!(rank_out, rank);
+            sti_wide!(out.word, word);
+            sti_wide!(out.level, frame_level);
+            sti_wide!(out.rank, rank);
         }
         done_bits = u32::from(at_stop | at_top);
     }
-    // Scalar tail, as in `step`.
-    let stacks: *mut u8 = g.stacks.as_mut_ptr().cast();
-    for lane in 0..WIDE {
-        // SAFETY: `frame_at_out[lane]` is `256 * lane + 8 * level` with
-        // `lane < WIDE` and `level < LEVEL_SLOTS`: the frame of that level in
-        // that lane's stack, written as the eight bytes of a `Frame`.
-        unsafe {
-            stacks
-                .add(frame_at_out[lane] as usize)
-                .cast::<u64>()
-                .write_unaligned(frame_out[lane]);
-        }
-        // A prefetch never faults.
-        prefetch_address(s.base.wrapping_add(fetch_out[lane] as u32 as usize));
-    }
-    let mut lanes = slow_bits & choose_bits;
-    while lanes != 0 {
-        let lane = lanes.trailing_zeros() as usize;
-        lanes &= lanes - 1;
-        let level = level_out[lane] as usize & (LEVEL_SLOTS - 1);
-        let mut fault = None;
-        let pointer = tracer.levels[level].pointer_or_fault(
-            level as u8,
-            word_out[lane] as u32,
-            rank_out[lane] as u32,
-            &mut fault,
-        );
-        if fault.is_some() {
-            return Err(Abandon);
-        }
-        g.target[lane] = pointer as i32;
-    }
+    // SAFETY: as in `step`: `out.frame_at` holds `256 * lane + 8 * level`
+    // with `level < LEVEL_SLOTS` in every lane.
+    unsafe { out.write_back(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
 }
 

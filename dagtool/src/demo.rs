@@ -14,7 +14,7 @@ use conformance::suite::{self, TraceBackend};
 use dagfmt::Dag;
 use dagfmt::mmap::MappedFile;
 use dagtrace::camera::Camera;
-use dagtrace::render::Shade;
+use dagtrace::lit::LitOptions;
 
 use crate::convert::{ConvertOptions, convert};
 
@@ -213,7 +213,8 @@ pub fn run(opts: &DemoOptions) -> Result<bool, ConvertError> {
     Ok(suite::report(&outcomes, "rays and files"))
 }
 
-/// Renders on the GPU when possible, else on the CPU. Returns RGB8 and a label.
+/// Renders the lit image (`dagtrace render --shade lit`'s defaults) on the
+/// GPU when possible, else on the CPU. Returns RGB8 and a label.
 fn render_image(
     dag: &Dag<'_>,
     camera: &Camera,
@@ -221,27 +222,24 @@ fn render_image(
     h: u32,
     cpu_only: bool,
 ) -> Result<(Vec<u8>, String), ConvertError> {
+    let options = LitOptions::default();
+    let tracer = dagtrace::Tracer::new(dag).map_err(|e| ConvertError::Usage(e.to_string()))?;
     if !cpu_only {
         match dagtrace::gpu::GpuTracer::new(dag, &dagtrace::gpu::GpuOptions::default()) {
             Ok(gpu) => {
-                let out = gpu
-                    .render(camera, w, h, None)
+                let surfaces = gpu
+                    .lit_surfaces(camera, w, h, None, &options)
                     .map_err(|e| ConvertError::Usage(format!("GPU render failed: {e}")))?;
-                let rgb = out
-                    .rgba
-                    .chunks_exact(4)
-                    .flat_map(|p| [p[0], p[1], p[2]])
-                    .collect();
+                let rgb = dagtrace::lit::compose(&surfaces, &options, |i| tracer.color(i));
                 return Ok((rgb, format!("GPU: {}", gpu.context().adapter_name())));
             }
             Err(e) => say!("   (no GPU tracer: {e}; using the CPU)"),
         }
     }
-    let tracer = dagtrace::Tracer::new(dag).map_err(|e| ConvertError::Usage(e.to_string()))?;
     let frame = camera
         .frame()
         .map_err(|e| ConvertError::Usage(e.to_string()))?;
-    let rgb = dagtrace::render::render(&tracer, &frame, w, h, Shade::Normal, None)
+    let rgb = dagtrace::lit::render_lit(&tracer, &frame, w, h, None, &options)
         .map_err(|e| ConvertError::Usage(format!("CPU render failed: {e}")))?;
     Ok((
         rgb,

@@ -125,9 +125,16 @@ impl CameraFrame {
     /// The ray through the centre of pixel `(x, y)` of a `width` x `height`
     /// image (row 0 at the top), traced over `[0, inf)` at `level`.
     pub fn ray(&self, x: u32, y: u32, width: u32, height: u32, level: Option<u8>) -> Ray {
+        self.ray_through(f64::from(x) + 0.5, f64::from(y) + 0.5, width, height, level)
+    }
+
+    /// The ray through the image point `(x, y)` (in pixels from the top left
+    /// corner; pixel `(i, j)` covers `[i, i + 1) x [j, j + 1)`) of a `width` x
+    /// `height` image, traced over `[0, inf)` at `level`.
+    pub fn ray_through(&self, x: f64, y: f64, width: u32, height: u32, level: Option<u8>) -> Ray {
         let aspect = f64::from(width) / f64::from(height);
-        let u = ((f64::from(x) + 0.5) / f64::from(width) * 2.0 - 1.0) * self.tan_half * aspect;
-        let v = (1.0 - (f64::from(y) + 0.5) / f64::from(height) * 2.0) * self.tan_half;
+        let u = (x / f64::from(width) * 2.0 - 1.0) * self.tan_half * aspect;
+        let v = (1.0 - y / f64::from(height) * 2.0) * self.tan_half;
         let dir = (self.forward + self.right * u + self.up * v).normalize();
         Ray {
             origin: self.origin.as_vec3().to_array(),
@@ -183,7 +190,7 @@ impl CameraFrame {
 }
 
 /// The even bits of `z` (a Morton code), packed: the x of pixel `z` of a tile.
-fn morton_even_bits(z: u32) -> u32 {
+pub(crate) fn morton_even_bits(z: u32) -> u32 {
     let mut v = z & 0x5555_5555;
     v = (v | v >> 1) & 0x3333_3333;
     v = (v | v >> 2) & 0x0f0f_0f0f;

@@ -18,7 +18,8 @@
 //! ```
 //!
 //! Batches are traced on all cores with rayon ([`Tracer::trace_batch`]);
-//! [`camera`] makes primary rays and [`render`] shades them into an image.
+//! [`camera`] makes primary rays, [`render`] shades them into an image and
+//! [`lit`] renders with shadows and ambient occlusion.
 #![deny(missing_docs)]
 
 pub mod camera;
@@ -26,6 +27,7 @@ pub mod cli;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 mod grid;
+pub mod lit;
 mod packet;
 mod parallel;
 pub mod render;

@@ -16,6 +16,7 @@ use dagfmt::mmap::MappedFile;
 use dagfmt::output::OutputError;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
+use dagtrace::lit::{LitOptions, render_lit};
 use dagtrace::render::{Shade, render, shade_hits};
 
 #[derive(Parser, Debug)]
@@ -73,6 +74,9 @@ struct OpenArgs {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum ShadeArg {
+    /// Sunlight with hard shadows, ambient occlusion and smooth normals,
+    /// in the file's colours when it has them.
+    Lit,
     /// Colour by entry face.
     Normal,
     /// Grey level by distance.
@@ -105,8 +109,21 @@ struct RenderArgs {
     #[arg(long, default_value_t = 40.0)]
     fov: f64,
     /// How hit pixels are coloured.
-    #[arg(long, value_enum, default_value_t = ShadeArg::Normal)]
+    #[arg(long, value_enum, default_value_t = ShadeArg::Lit)]
     shade: ShadeArg,
+    /// Lit: direction towards the sun, `x,y,z` (world space) [default: -0.35,1,0.45].
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    sun: Option<[f64; 3]>,
+    /// Lit: ambient-occlusion rays per sample (0 turns ambient occlusion off) [default: 8].
+    #[arg(long, value_name = "N")]
+    ao_rays: Option<u32>,
+    /// Lit: length of the ambient-occlusion rays in voxels (cells of the
+    /// traced level) [default: the grid's edge / 32].
+    #[arg(long, value_name = "VOXELS")]
+    ao_radius: Option<f64>,
+    /// Lit: rays per pixel, spread over the pixel and averaged (anti-aliasing) [default: 1].
+    #[arg(long, value_name = "N")]
+    samples: Option<u32>,
     /// Level of detail: trace the cells of this level (1..=depth) instead of voxels.
     #[arg(long)]
     level: Option<u8>,
@@ -344,20 +361,56 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
         },
     };
     let frame = camera.frame()?;
+    let lit_flags = [
+        ("--sun", args.sun.is_some()),
+        ("--ao-rays", args.ao_rays.is_some()),
+        ("--ao-radius", args.ao_radius.is_some()),
+        ("--samples", args.samples.is_some()),
+    ];
     let shade = match args.shade {
-        ShadeArg::Normal => Shade::Normal,
-        ShadeArg::Depth => Shade::Depth,
-        ShadeArg::Color => Shade::Color,
+        ShadeArg::Lit => None,
+        ShadeArg::Normal => Some(Shade::Normal),
+        ShadeArg::Depth => Some(Shade::Depth),
+        ShadeArg::Color => Some(Shade::Color),
     };
-    let pixels = match pick_gpu(&dag, &args.backend, shade == Shade::Color)? {
-        None => render(&tracer, &frame, args.width, args.height, shade, args.level)
-            .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
-        Some(gpu) => {
-            // The same f64 camera rays as the CPU path, so both back ends
-            // render the same image (up to the spec's tolerance).
-            let rays = frame.rays(args.width, args.height, args.level);
-            let hits = gpu.trace(&rays)?;
-            shade_hits(&hits, shade, |i| tracer.color(i))
+    let pixels = match shade {
+        Some(shade) => {
+            if let Some((flag, _)) = lit_flags.iter().find(|(_, given)| *given) {
+                return fail(format!("{flag} applies to --shade lit only"));
+            }
+            match pick_gpu(&dag, &args.backend, shade == Shade::Color)? {
+                None => render(&tracer, &frame, args.width, args.height, shade, args.level)
+                    .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
+                Some(gpu) => {
+                    // The same f64 camera rays as the CPU path, so both back ends
+                    // render the same image (up to the spec's tolerance).
+                    let rays = frame.rays(args.width, args.height, args.level);
+                    let hits = gpu.trace(&rays)?;
+                    shade_hits(&hits, shade, |i| tracer.color(i))
+                }
+            }
+        }
+        None => {
+            let defaults = LitOptions::default();
+            let options = LitOptions {
+                sun: args.sun.unwrap_or(defaults.sun),
+                ao_rays: args.ao_rays.unwrap_or(defaults.ao_rays),
+                ao_radius: args.ao_radius,
+                samples: args.samples.unwrap_or(defaults.samples),
+            };
+            options.check()?;
+            match pick_gpu(&dag, &args.backend, tracer.colors().is_some())? {
+                None => render_lit(
+                    &tracer,
+                    &frame,
+                    args.width,
+                    args.height,
+                    args.level,
+                    &options,
+                )
+                .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
+                Some(gpu) => lit_on_gpu(&gpu, &camera, &args, &options, &tracer)?,
+            }
         }
     };
     write_atomically(&args.output, args.open.force, |out| {
@@ -371,6 +424,32 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
         )
         .map_err(std::io::Error::other)
     })
+}
+
+/// The lit image on the GPU.
+#[cfg(feature = "gpu")]
+fn lit_on_gpu(
+    gpu: &GpuBackend,
+    camera: &Camera,
+    args: &RenderArgs,
+    options: &LitOptions,
+    tracer: &Tracer<'_>,
+) -> Result<Vec<u8>, Failure> {
+    let surfaces = gpu.lit_surfaces(camera, args.width, args.height, args.level, options)?;
+    Ok(dagtrace::lit::compose(&surfaces, options, |i| {
+        tracer.color(i)
+    }))
+}
+
+#[cfg(not(feature = "gpu"))]
+fn lit_on_gpu(
+    gpu: &GpuBackend,
+    _: &Camera,
+    _: &RenderArgs,
+    _: &LitOptions,
+    _: &Tracer<'_>,
+) -> Result<Vec<u8>, Failure> {
+    match *gpu {}
 }
 
 fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {

@@ -1189,6 +1189,85 @@ impl<'a> Tracer<'a> {
         }
     }
 
+    /// Occupancy of the 5 × 5 × 5 cells of `level` centred on `cell`: bit
+    /// `(dx + 2) + 5 (dy + 2) + 25 (dz + 2)` is set when cell `cell + (dx, dy,
+    /// dz)` is occupied (cells outside the grid count as empty). The lit
+    /// renderer estimates shading normals from it ([`crate::lit`]). Below the
+    /// leaf level the few 4³ leaves the window overlaps are read once each.
+    pub fn occupancy_around(&self, cell: [u32; 3], level: u8) -> Result<u128, TraceError> {
+        if level > self.depth {
+            return Err(TraceError::LevelTooDeep {
+                level,
+                depth: self.depth,
+            });
+        }
+        let mut stack = [Frame::default(); LEVEL_SLOTS];
+        let last = (1i64 << level) - 1;
+        let centre = cell.map(i64::from);
+        let mut bits = 0u128;
+        if self.empty || level == 0 {
+            // Level 0: the root cell alone, occupied unless the volume is empty.
+            if !self.empty && centre.iter().all(|&c| c == 0) {
+                bits |= 1 << 62;
+            }
+            return Ok(bits);
+        }
+        // Leaves (level `leaf_level`) overlapped by the window, read lazily.
+        let shift = level.saturating_sub(self.leaf_level);
+        let mut leaves: [(i64, i64, i64, Option<u64>); 27] = [(-1, -1, -1, None); 27];
+        let mut cached = 0;
+        for dz in -2..=2i64 {
+            for dy in -2..=2i64 {
+                for dx in -2..=2i64 {
+                    let c = [centre[0] + dx, centre[1] + dy, centre[2] + dz];
+                    if c.iter().any(|&v| v < 0 || v > last) {
+                        continue;
+                    }
+                    let cell = c.map(|v| v as u32);
+                    let occupied = if shift == 0 {
+                        self.lookup(cell, level, &mut stack)
+                            .map_err(|f| self.fault_error(f))?
+                            .is_some()
+                    } else {
+                        let key = (c[0] >> shift, c[1] >> shift, c[2] >> shift);
+                        let at = match leaves[..cached].iter().position(|l| (l.0, l.1, l.2) == key)
+                        {
+                            Some(at) => at,
+                            None => {
+                                let leaf_cell = cell.map(|v| v >> shift);
+                                let bits = match self
+                                    .lookup(leaf_cell, self.leaf_level, &mut stack)
+                                    .map_err(|f| self.fault_error(f))?
+                                {
+                                    None => None,
+                                    Some(found) => Some(
+                                        self.levels[usize::from(self.leaf_level)]
+                                            .leaf(self.leaf_level, found.leaf)
+                                            .map_err(|f| self.fault_error(f))?,
+                                    ),
+                                };
+                                leaves[cached] = (key.0, key.1, key.2, bits);
+                                cached += 1;
+                                cached - 1
+                            }
+                        };
+                        leaves[at].3.is_some_and(|leaf| {
+                            if level == self.depth {
+                                leaf >> leaf_bit(cell[0] & 3, cell[1] & 3, cell[2] & 3) & 1 != 0
+                            } else {
+                                (leaf >> (8 * child_at(cell, 0))) & 0xff != 0
+                            }
+                        })
+                    };
+                    if occupied {
+                        bits |= 1 << ((dx + 2) + 5 * (dy + 2) + 25 * (dz + 2));
+                    }
+                }
+            }
+        }
+        Ok(bits)
+    }
+
     /// The occupied cell of `level` holding the grid point `origin` (a ray with no direction).
     fn point_cell(
         &self,

@@ -157,6 +157,9 @@ macro_rules! gpu_struct {
     };
 }
 
+/// The lit renderer (`lit.rs`) declares its records with it too.
+pub(crate) use gpu_struct;
+
 gpu_struct! {
     /// A ray prepared for the traversal: grid space, mirrored so that every
     /// direction component is non-negative, scaled and re-based exactly as the

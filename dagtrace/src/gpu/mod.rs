@@ -42,6 +42,7 @@
 //! validator would catch gives wrong answers, not failures.
 
 mod layout;
+mod lit;
 mod prepare;
 mod upload;
 
@@ -64,6 +65,7 @@ use layout::{
     IO_STORAGE_BUFFERS, MAX_PAGES, MAX_STORED_LEVELS, OPTION_INDEX, OPTION_WRITE_HITS,
     OPTION_WRITE_IMAGE, RAY_SKIP, RENDER_TILE, ShaderConfig,
 };
+pub use lit::LitTimes;
 use prepare::{Frame, Setup};
 use upload::Placement;
 
@@ -472,6 +474,10 @@ pub struct GpuTracer {
     page_count: u32,
     page_bytes: u64,
     total_bytes: u64,
+    /// How the shader was specialised (the lit passes compile the same).
+    config: ShaderConfig,
+    /// The lit render's passes, compiled on first use (`lit.rs`).
+    lit: std::sync::OnceLock<Result<Arc<lit::LitPipelines>, GpuError>>,
 }
 
 impl GpuTracer {
@@ -600,6 +606,8 @@ impl GpuTracer {
             page_count: placement.pages,
             page_bytes: placement.page_words * 4,
             total_bytes: placement.total_words * 4,
+            config,
+            lit: std::sync::OnceLock::new(),
         })
     }
 

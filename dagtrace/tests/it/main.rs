@@ -6,5 +6,6 @@ mod cli;
 mod common;
 #[cfg(feature = "gpu")]
 mod gpu;
+mod lit;
 mod oracle;
 mod props;

@@ -286,9 +286,9 @@ pub fn shade(surface: &Surface, albedo: [f32; 3], sun: [f32; 3], ao_rays: u32) -
         surface.ao_open as f32 / ao_rays as f32
     };
     let cos = (n[0] * sun[0] + n[1] * sun[1] + n[2] * sun[2]).max(0.0);
-    let direct = if surface.sun_visible { 0.9 * cos } else { 0.0 };
+    let direct = if surface.sun_visible { 0.75 * cos } else { 0.0 };
     // Sky light, a little brighter from above.
-    let sky = 0.32 * open * (0.8 + 0.2 * n[1]);
+    let sky = 0.3 * open * (0.8 + 0.2 * n[1]);
     albedo.map(|c| c * (direct + sky))
 }
 
@@ -307,6 +307,9 @@ pub fn compose(
     surfaces
         .par_chunks(samples)
         .flat_map_iter(|pixel| {
+            if pixel.iter().all(|s| !s.hit) {
+                return BACKGROUND;
+            }
             let mut sum = [0f32; 3];
             for s in pixel {
                 let rgb = if s.hit {

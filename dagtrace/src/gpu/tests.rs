@@ -138,3 +138,37 @@ fn preamble_carries_the_rust_constants() {
         ref e => panic!("unexpected {e:?}"),
     }
 }
+
+#[test]
+fn lit_shader_parses_validates_and_shares_layouts() {
+    use super::lit::{GpuLitParams, GpuSurface};
+    for config in configs() {
+        let source = super::lit::shader_source(&config);
+        let module = naga::front::wgsl::parse_str(&source)
+            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(&source)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{config:?}: {}", e.emit_to_string(&source)));
+        let entries: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        assert_eq!(
+            entries,
+            [
+                "trace_batch",
+                "render_primary",
+                "lit_primary",
+                "lit_shadow",
+                "lit_ao"
+            ],
+            "{config:?}"
+        );
+        check_struct::<GpuSurface>(&module);
+        check_struct::<GpuLitParams>(&module);
+    }
+}

@@ -65,7 +65,7 @@ fn render_writes_a_png_of_the_scene() {
     let dir = tempfile::tempdir().unwrap();
     let (vdag, _) = scene(dir.path());
     let png = dir.path().join("out.png");
-    for shade in ["normal", "depth", "color"] {
+    for shade in ["lit", "normal", "depth", "color"] {
         let out = dagtrace(&[
             "render",
             s(&vdag),
@@ -114,6 +114,69 @@ fn render_writes_a_png_of_the_scene() {
     let image = image::open(&png).unwrap().to_rgb8();
     assert!(image.pixels().all(|p| p.0 == BACKGROUND));
     assert_files(dir.path(), &["scene.vdag", "out.png"]);
+}
+
+#[test]
+fn lit_is_the_default_and_its_options_are_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let (vdag, _) = scene(dir.path());
+    let render = |name: &str, extra: &[&str]| {
+        let png = dir.path().join(name);
+        let mut args = vec!["render", s(&vdag), "-o", s(&png)];
+        args.extend_from_slice(&["--width", "48", "--height", "32"]);
+        args.extend_from_slice(extra);
+        (dagtrace(&args), png)
+    };
+    let (out, default) = render("default.png", &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (out, lit) = render("lit.png", &["--shade", "lit"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        std::fs::read(&default).unwrap(),
+        std::fs::read(&lit).unwrap()
+    );
+    let (out, options) = render(
+        "options.png",
+        &[
+            "--sun=-1,2,0.5",
+            "--ao-rays",
+            "4",
+            "--ao-radius",
+            "3",
+            "--samples",
+            "4",
+        ],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let image = image::open(&options).unwrap().to_rgb8();
+    assert_ne!(image.get_pixel(24, 16).0, BACKGROUND);
+    assert_eq!(image.get_pixel(0, 0).0, BACKGROUND);
+    for (args, needle) in [
+        (&["--samples", "0"][..], "samples per pixel"),
+        (&["--ao-rays", "100000"][..], "ambient-occlusion rays"),
+        (&["--ao-radius=-2"][..], "ambient-occlusion radius"),
+        (&["--sun", "0,0,0"][..], "sun direction"),
+        (
+            &["--shade", "depth", "--ao-rays", "4"][..],
+            "--ao-rays applies to --shade lit",
+        ),
+    ] {
+        let (out, png) = render("bad.png", args);
+        assert_one_line_error(&out, needle);
+        assert!(!png.exists(), "{args:?}");
+    }
 }
 
 #[test]

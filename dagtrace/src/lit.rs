@@ -368,7 +368,7 @@ pub fn start_point(
     });
     if let 1..=6 = face {
         let axis = usize::from((face - 1) / 2);
-        let upper = face % 2 == 0;
+        let upper = face.is_multiple_of(2);
         p[axis] = (f64::from(cell[axis]) + if upper { 1.0 } else { 0.0 }) * cell_size;
     }
     std::array::from_fn(|i| p[i] + f64::from(normal[i]) * f64::from(START_OFFSET) * cell_size)

@@ -287,7 +287,7 @@ impl GpuTracer {
     }
 
     /// Times the passes of a lit render ([`GpuTracer::lit_surfaces`]) of an
-    /// image of at most [`BAND_SURFACES`] surfaces: per run, the wall time
+    /// image of at most 2^20 surfaces (pixels x samples): per run, the wall time
     /// of each pass submitted alone until the GPU is done, and the rays
     /// traced.
     pub fn time_lit(

@@ -227,10 +227,9 @@ fn render_image(
     if !cpu_only {
         match dagtrace::gpu::GpuTracer::new(dag, &dagtrace::gpu::GpuOptions::default()) {
             Ok(gpu) => {
-                let surfaces = gpu
-                    .lit_surfaces(camera, w, h, None, &options)
+                let rgb = gpu
+                    .render_lit(camera, w, h, None, &options, |i| tracer.color(i))
                     .map_err(|e| ConvertError::Usage(format!("GPU render failed: {e}")))?;
-                let rgb = dagtrace::lit::compose(&surfaces, &options, |i| tracer.color(i));
                 return Ok((rgb, format!("GPU: {}", gpu.context().adapter_name())));
             }
             Err(e) => say!("   (no GPU tracer: {e}; using the CPU)"),

@@ -51,10 +51,10 @@ pub const DEFAULT_AO_RAYS: u32 = 8;
 pub const DEFAULT_AO_RADIUS_DIVISOR: u32 = 32;
 
 /// Most samples per pixel.
-pub const MAX_SAMPLES: u32 = 256;
+pub const MAX_SAMPLES: u32 = 64;
 
 /// Most ambient-occlusion rays per sample.
-pub const MAX_AO_RAYS: u32 = 256;
+pub const MAX_AO_RAYS: u32 = 64;
 
 /// Albedo of voxels without a stored colour.
 pub const DEFAULT_ALBEDO: [f32; 3] = [0.78, 0.76, 0.72];
@@ -374,12 +374,16 @@ pub fn start_point(
     std::array::from_fn(|i| p[i] + f64::from(normal[i]) * f64::from(START_OFFSET) * cell_size)
 }
 
-/// Which surfaces' rays a chunk of the CPU render traces together: at least
-/// this many primary rays (whole rows of tiles), so that memory stays bounded.
-const CHUNK_RAYS: usize = 1 << 16;
+/// Rays (primary and secondary) a chunk of the CPU render traces together, at
+/// most (but a whole tile at least), so that memory stays bounded whatever
+/// the image size, samples and AO rays.
+const CHUNK_RAYS: usize = 1 << 20;
 
 /// Renders a lit `width` x `height` image (RGB8, rows from the top) seen
-/// through `camera`, tracing at `level` (`None` = full depth), on all cores.
+/// through `camera`, tracing at `level` (`None` = full depth), on all cores,
+/// in chunks of tiles (bounded memory). Check the options first
+/// ([`LitOptions::check`]): samples and AO rays beyond their maxima are
+/// clamped here.
 pub fn render_lit(
     tracer: &Tracer<'_>,
     camera: &CameraFrame,
@@ -388,12 +392,27 @@ pub fn render_lit(
     level: Option<u8>,
     options: &LitOptions,
 ) -> Result<Vec<u8>, TraceError> {
-    let surfaces = trace_surfaces(tracer, camera, width, height, level, options)?;
-    Ok(compose(&surfaces, options, |i| tracer.color(i)))
+    let mut image = vec![0u8; width as usize * height as usize * 3];
+    for_each_chunk(
+        tracer,
+        camera,
+        (width, height, CHUNK_RAYS),
+        level,
+        options,
+        |pixels, surfaces| {
+            let rgb = compose(surfaces, options, |i| tracer.color(i));
+            for (&pixel, rgb) in pixels.iter().zip(rgb.chunks_exact(3)) {
+                let at = pixel as usize * 3;
+                image[at..at + 3].copy_from_slice(rgb);
+            }
+        },
+    )?;
+    Ok(image)
 }
 
 /// The surfaces of a lit render ([`render_lit`] before [`compose`]):
-/// `samples` per pixel, pixel after pixel, rows from the top.
+/// `samples` per pixel, pixel after pixel, rows from the top. (The whole
+/// image's surfaces at once: for tests and small images.)
 pub fn trace_surfaces(
     tracer: &Tracer<'_>,
     camera: &CameraFrame,
@@ -402,25 +421,91 @@ pub fn trace_surfaces(
     level: Option<u8>,
     options: &LitOptions,
 ) -> Result<Vec<Surface>, TraceError> {
-    let samples = options.samples.max(1);
-    let pixels = width as usize * height as usize;
-    let mut surfaces = vec![Surface::MISS; pixels * samples as usize];
-    let rows_per_chunk =
-        (CHUNK_RAYS / (width as usize * TILE as usize * samples as usize)).max(1) as u32 * TILE;
-    let mut y0 = 0;
-    while y0 < height {
-        let y1 = (y0 + rows_per_chunk).min(height);
-        let (rays, owners) = primary_rays(camera, width, height, y0..y1, samples, level);
-        let rays_set = SecondaryRays::new(tracer, &rays, &owners, level, options)?;
-        rays_set.finish(tracer, &mut surfaces)?;
-        y0 = y1;
+    let samples = options.samples.clamp(1, MAX_SAMPLES) as usize;
+    let mut out = vec![Surface::MISS; width as usize * height as usize * samples];
+    for_each_chunk(
+        tracer,
+        camera,
+        (width, height, CHUNK_RAYS),
+        level,
+        options,
+        |pixels, surfaces| {
+            for (&pixel, group) in pixels.iter().zip(surfaces.chunks_exact(samples)) {
+                let at = pixel as usize * samples;
+                out[at..at + samples].copy_from_slice(group);
+            }
+        },
+    )?;
+    Ok(out)
+}
+
+/// Traces the `width` x `height` image in chunks of whole tiles of at most
+/// `chunk_rays` rays (but one tile) and hands each chunk's pixels (pixel
+/// numbers `y * width + x`) with their surfaces (`samples` per pixel, in the
+/// same order) to `each`.
+fn for_each_chunk(
+    tracer: &Tracer<'_>,
+    camera: &CameraFrame,
+    (width, height, chunk_rays): (u32, u32, usize),
+    level: Option<u8>,
+    options: &LitOptions,
+    mut each: impl FnMut(&[u32], &[Surface]),
+) -> Result<(), TraceError> {
+    let options = LitOptions {
+        samples: options.samples.clamp(1, MAX_SAMPLES),
+        ao_rays: options.ao_rays.min(MAX_AO_RAYS),
+        ..*options
+    };
+    let samples = options.samples;
+    let per_tile = (TILE * TILE) as usize * samples as usize * (2 + options.ao_rays as usize);
+    let tiles_per_chunk = (chunk_rays / per_tile).max(1);
+    let tiles: Vec<(u32, u32)> = (0..height)
+        .step_by(TILE as usize)
+        .flat_map(|ty| (0..width).step_by(TILE as usize).map(move |tx| (tx, ty)))
+        .collect();
+    for chunk in tiles.chunks(tiles_per_chunk) {
+        let mut rays = Vec::new();
+        let mut seeds = Vec::new();
+        let mut slots = Vec::new();
+        let mut pixels = Vec::new();
+        for &(tx, ty) in chunk {
+            let base = pixels.len() as u32;
+            let first = pixels.len();
+            pixels.extend((0..TILE * TILE).filter_map(|z| {
+                let x = tx + crate::camera::morton_even_bits(z);
+                let y = ty + crate::camera::morton_even_bits(z >> 1);
+                (x < width && y < height).then_some(y * width + x)
+            }));
+            for s in 0..samples {
+                let [ox, oy] = sample_offset(s, samples);
+                for (j, &pixel) in pixels[first..].iter().enumerate() {
+                    let (x, y) = (pixel % width, pixel / width);
+                    rays.push(camera.ray_through(
+                        f64::from(x) + f64::from(ox),
+                        f64::from(y) + f64::from(oy),
+                        width,
+                        height,
+                        level,
+                    ));
+                    seeds.push((u64::from(pixel) * u64::from(samples) + u64::from(s)) as u32);
+                    slots.push((base + j as u32) * samples + s);
+                }
+            }
+        }
+        let traced = SecondaryRays::new(tracer, &rays, &seeds, level, &options)?.finish(tracer)?;
+        let mut surfaces = vec![Surface::MISS; pixels.len() * samples as usize];
+        for (slot, surface) in slots.into_iter().zip(traced) {
+            surfaces[slot as usize] = surface;
+        }
+        each(&pixels, &surfaces);
     }
-    Ok(surfaces)
+    Ok(())
 }
 
 /// The primary rays of rows `rows` (a multiple of [`TILE`] from the top),
 /// tile by tile, each tile's pixels in Z order once per sample, with the
-/// surface number (`pixel * samples + sample`) of each.
+/// surface number (`pixel * samples + sample`, modulo 2³², the seed of its
+/// AO rays) of each: the order [`render_lit`] traces them in.
 pub fn primary_rays(
     camera: &CameraFrame,
     width: u32,
@@ -448,7 +533,8 @@ pub fn primary_rays(
                             height,
                             level,
                         ));
-                        owners.push((y * width + x) * samples + s);
+                        let pixel = u64::from(y) * u64::from(width) + u64::from(x);
+                        owners.push((pixel * u64::from(samples) + u64::from(s)) as u32);
                     }
                 }
             }
@@ -459,8 +545,8 @@ pub fn primary_rays(
 
 /// Primary hits of a chunk and their secondary rays.
 struct SecondaryRays {
-    /// Per primary ray: its surface number and (without its visibility) surface.
-    surfaces: Vec<(u32, Surface)>,
+    /// Per primary ray: its surface (without its visibility).
+    surfaces: Vec<Surface>,
     /// The primary rays that have secondary rays: `1 + ao_rays` each, the
     /// shadow ray first.
     traced: Vec<u32>,
@@ -531,7 +617,7 @@ impl SecondaryRays {
                 traced.push(i as u32);
                 secondary.extend(rays);
             }
-            surfaces.push((owners[i], surface));
+            surfaces.push(surface);
         }
         Ok(SecondaryRays {
             surfaces,
@@ -541,19 +627,16 @@ impl SecondaryRays {
         })
     }
 
-    /// Traces the secondary rays and writes the surfaces.
-    fn finish(mut self, tracer: &Tracer<'_>, out: &mut [Surface]) -> Result<(), TraceError> {
+    /// Traces the secondary rays: the surfaces, one per primary ray.
+    fn finish(mut self, tracer: &Tracer<'_>) -> Result<Vec<Surface>, TraceError> {
         let hits = tracer.clone().with_index(false).trace_batch(&self.rays)?;
         let per_hit = 1 + self.ao_rays as usize;
         for (&i, hits) in self.traced.iter().zip(hits.chunks_exact(per_hit)) {
-            let surface = &mut self.surfaces[i as usize].1;
+            let surface = &mut self.surfaces[i as usize];
             surface.sun_visible = !hits[0].hit;
             surface.ao_open = hits[1..].iter().filter(|h| !h.hit).count() as u32;
         }
-        for (owner, surface) in self.surfaces {
-            out[owner as usize] = surface;
-        }
-        Ok(())
+        Ok(self.surfaces)
     }
 }
 
@@ -638,5 +721,66 @@ impl Tracer<'_> {
             tmax: (f64::from(length) / self.grid_scale) as f32,
             level,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use dagfmt::{AttributeKind, Dag, DagBuilder};
+
+    /// How the image is cut into chunks changes nothing: every surface's
+    /// rays and seeds depend only on its pixel and sample.
+    #[test]
+    fn chunks_of_any_size_give_the_same_surfaces() {
+        let voxels = (0..32u32).flat_map(|x| {
+            (0..32u32).flat_map(move |z| {
+                let h = 8 + (x * 7 + z * 3) % 9;
+                (0..h).map(move |y| [x, y, z])
+            })
+        });
+        let mut built =
+            DagBuilder::from_voxels(5, AttributeKind::VoxelCount, voxels).expect("build");
+        built.set_root_cube([0.0; 3], 1.0).expect("cube");
+        let bytes = built.to_bytes();
+        let dag = Dag::open(&bytes).expect("open");
+        let tracer = Tracer::new(&dag).expect("tracer");
+        // Partial tiles at the right and bottom edges.
+        let (w, h) = (21, 13);
+        let frame = Camera::automatic(&dag, f64::from(w) / f64::from(h))
+            .frame()
+            .expect("frame");
+        let options = LitOptions {
+            samples: 3,
+            ao_rays: 4,
+            ..LitOptions::default()
+        };
+        let mut images = Vec::new();
+        for chunk_rays in [1, 5000, CHUNK_RAYS] {
+            let mut out = vec![Surface::MISS; (w * h * 3) as usize];
+            let mut chunks = 0;
+            for_each_chunk(
+                &tracer,
+                &frame,
+                (w, h, chunk_rays),
+                None,
+                &options,
+                |pixels, surfaces| {
+                    chunks += 1;
+                    for (&pixel, group) in pixels.iter().zip(surfaces.chunks_exact(3)) {
+                        out[pixel as usize * 3..][..3].copy_from_slice(group);
+                    }
+                },
+            )
+            .expect("trace");
+            assert!(chunks >= 1);
+            images.push(out);
+        }
+        assert!(images[0].iter().filter(|s| s.hit).count() > 100);
+        assert_eq!(images[0], images[1]);
+        assert_eq!(images[0], images[2]);
+        let rgb = render_lit(&tracer, &frame, w, h, None, &options).expect("render");
+        assert_eq!(rgb, compose(&images[0], &options, |_| None));
     }
 }

@@ -435,10 +435,11 @@ fn lit_on_gpu(
     options: &LitOptions,
     tracer: &Tracer<'_>,
 ) -> Result<Vec<u8>, Failure> {
-    let surfaces = gpu.lit_surfaces(camera, args.width, args.height, args.level, options)?;
-    Ok(dagtrace::lit::compose(&surfaces, options, |i| {
-        tracer.color(i)
-    }))
+    Ok(
+        gpu.render_lit(camera, args.width, args.height, args.level, options, |i| {
+            tracer.color(i)
+        })?,
+    )
 }
 
 #[cfg(not(feature = "gpu"))]

@@ -260,7 +260,9 @@ impl GpuTracer {
     /// `camera` at `level` (`None` = full depth): `options.samples` per
     /// pixel, pixel after pixel, rows from the top, as
     /// [`crate::lit::trace_surfaces`] returns them (attribute indices when the
-    /// tracer computes them). [`crate::lit::compose`] makes the image.
+    /// tracer computes them). [`crate::lit::compose`] makes the image. (All
+    /// of the image's surfaces at once: [`GpuTracer::render_lit`] makes
+    /// large images in bounded memory.)
     pub fn lit_surfaces(
         &self,
         camera: &Camera,
@@ -271,19 +273,54 @@ impl GpuTracer {
     ) -> Result<Vec<Surface>, GpuError> {
         let mut out = Vec::new();
         self.lit_bands(camera, width, height, level, options, |band, pipelines| {
-            let mut encoder = self.encoder();
-            self.encode_lit(&mut encoder, &band, pipelines, Pass::All);
-            self.context.inner.queue.submit([encoder.finish()]);
-            let raw: Vec<GpuSurface> = self
-                .context
-                .read_back(&band.buffer, band.surfaces * size_of::<GpuSurface>() as u64)?;
-            let first = out.len();
-            for (i, r) in raw.iter().enumerate() {
-                out.push(self.surface(r, first + i)?);
-            }
+            let surfaces = self.band_surfaces(&band, pipelines, out.len())?;
+            out.extend(surfaces);
             Ok(())
         })?;
         Ok(out)
+    }
+
+    /// The lit image (RGB8, rows from the top) of [`GpuTracer::lit_surfaces`],
+    /// shaded by [`crate::lit::compose`] band by band (so that host memory
+    /// stays bounded); `color` looks up a voxel's colour by attribute index.
+    pub fn render_lit(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        level: Option<u8>,
+        options: &LitOptions,
+        color: impl Fn(u64) -> Option<[u8; 4]> + Sync,
+    ) -> Result<Vec<u8>, GpuError> {
+        let mut image = Vec::with_capacity(width as usize * height as usize * 3);
+        let mut first = 0;
+        self.lit_bands(camera, width, height, level, options, |band, pipelines| {
+            let surfaces = self.band_surfaces(&band, pipelines, first)?;
+            first += surfaces.len();
+            image.extend(crate::lit::compose(&surfaces, options, &color));
+            Ok(())
+        })?;
+        Ok(image)
+    }
+
+    /// Runs the three passes of `band` and reads its surfaces back (the
+    /// band's first surface is number `first` of the image, for errors).
+    fn band_surfaces(
+        &self,
+        band: &Band,
+        pipelines: &LitPipelines,
+        first: usize,
+    ) -> Result<Vec<Surface>, GpuError> {
+        let mut encoder = self.encoder();
+        self.encode_lit(&mut encoder, band, pipelines, Pass::All);
+        self.context.inner.queue.submit([encoder.finish()]);
+        let raw: Vec<GpuSurface> = self
+            .context
+            .read_back(&band.buffer, band.surfaces * size_of::<GpuSurface>() as u64)?;
+        raw.iter()
+            .enumerate()
+            .map(|(i, r)| self.surface(r, first + i))
+            .collect()
     }
 
     /// Times the passes of a lit render ([`GpuTracer::lit_surfaces`]) of an

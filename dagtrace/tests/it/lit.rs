@@ -367,6 +367,11 @@ mod gpu {
                 .count();
             let a = lit::compose(&cpu, &options, |_| None);
             let b = lit::compose(&on_gpu, &options, |_| None);
+            // The banded image is the composed surfaces.
+            let banded = gpu
+                .render_lit(&camera, w, h, level, &options, |_| None)
+                .expect("gpu image");
+            assert_eq!(banded, b);
             let diffs: Vec<u8> = a
                 .chunks(3)
                 .zip(b.chunks(3))

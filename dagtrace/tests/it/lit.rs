@@ -345,6 +345,16 @@ mod gpu {
                 },
                 Some(6),
             ),
+            (
+                // Cells above the leaves: the shader's node lookups.
+                32,
+                24,
+                LitOptions {
+                    ao_rays: 2,
+                    ..LitOptions::default()
+                },
+                Some(4),
+            ),
         ] {
             let camera = Camera::automatic(&dag, f64::from(w) / f64::from(h));
             let frame = camera.frame().expect("frame");

@@ -1,8 +1,8 @@
 //! The GPU tracer against two references: an f64 brute-force oracle of the
 //! ray/hit semantics (spec/VDAG.md, with its tolerance) over the voxels of the
 //! DAG, and the CPU tracer (`dagtrace::Tracer`), whose cells the GPU tracer
-//! finds too but at exact ties (it uses the same traversal design and f32
-//! plane arithmetic; the set-up and `t` roundings differ slightly).
+//! finds too but at exact ties (it uses the same set-up, traversal design and
+//! f32 plane arithmetic, but not every path of the CPU's traversal).
 //!
 //! Without a wgpu adapter (not even a software one such as Mesa's lavapipe)
 //! every test here prints that it is skipped, unless `VDAG_REQUIRE_GPU=1`,
@@ -407,10 +407,11 @@ fn same(a: &Hit, b: &Hit) -> bool {
 }
 
 /// Whether two answers name the same cell (or are both misses). The CPU and
-/// GPU tracers share the traversal's design but not every rounding (the GPU
-/// sets rays up and computes `t` in f64 on the host, the CPU in f32 from the
-/// traversal), so at exact ties they may pick different cells, and `t` may
-/// differ in the last bits; both are checked against the oracle instead.
+/// GPU tracers share the traversal's design and set-up, and compute `t` the
+/// same way, but not every path of the traversal (and the GPU computes `t`
+/// in f64 on the host for rare rays: no direction, far origins, rays that
+/// start inside the cell), so at exact ties they may pick different cells,
+/// and `t` may differ in the last bits; both are checked against the oracle.
 fn same_cell(a: &Hit, b: &Hit) -> bool {
     a.hit == b.hit && (!a.hit || (a.voxel == b.voxel && a.level == b.level && a.index == b.index))
 }

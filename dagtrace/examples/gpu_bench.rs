@@ -1,7 +1,7 @@
 //! GPU versus CPU ray throughput on a `.vdag` file.
 //!
 //! ```text
-//! cargo run --release -p dagtrace --example gpu_bench -- FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N]
+//! cargo run --release -p dagtrace --example gpu_bench -- FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N] [--chunk N]
 //! ```
 //!
 //! Prints the adapter, the time to the first traced ray (open + device +
@@ -11,7 +11,9 @@
 //! through the GPU in chunks, read back; the host part of the call, its
 //! set-up and answers, in ms and per 10^6 rays; the whole call's time over
 //! the dispatch time), with the full and the short stack, and the same rays
-//! on the CPU tracer (all cores).
+//! on the CPU tracer (all cores). `--chunk N` sets the rays per chunk of the
+//! batch path (with the whole batch in one chunk nothing overlaps, and the
+//! host part is the host's work alone, the GPU idle meanwhile).
 
 #[cfg(feature = "gpu")]
 fn main() {
@@ -45,6 +47,8 @@ mod bench {
         random: usize,
         width: u32,
         height: u32,
+        /// Rays per chunk of the batch path (`GpuOptions::rays_per_dispatch`).
+        chunk: u32,
     }
 
     fn parse_args() -> Result<Args, String> {
@@ -55,6 +59,7 @@ mod bench {
             random: 1 << 20,
             width: 1920,
             height: 1080,
+            chunk: GpuOptions::default().rays_per_dispatch,
         };
         let mut it = std::env::args().skip(1);
         let number = |v: Option<String>, what: &str| -> Result<usize, String> {
@@ -67,6 +72,7 @@ mod bench {
                 "--runs" => args.runs = number(it.next(), "--runs")?.max(1),
                 "--cpu-runs" => args.cpu_runs = number(it.next(), "--cpu-runs")?,
                 "--random" => args.random = number(it.next(), "--random")?,
+                "--chunk" => args.chunk = number(it.next(), "--chunk")?.clamp(1, 1 << 22) as u32,
                 "--size" => {
                     let v = it.next().ok_or("--size needs WxH")?;
                     let (w, h) = v.split_once('x').ok_or("--size needs WxH")?;
@@ -80,7 +86,7 @@ mod bench {
         }
         if args.path.is_empty() {
             return Err(
-                "usage: gpu_bench FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N]"
+                "usage: gpu_bench FILE.vdag [--runs N] [--random N] [--size WxH] [--cpu-runs N] [--chunk N]"
                     .into(),
             );
         }
@@ -222,6 +228,7 @@ mod bench {
             );
             let no_index = GpuOptions {
                 compute_index: false,
+                rays_per_dispatch: args.chunk,
                 ..GpuOptions::default()
             };
             let tracers = [

@@ -3,7 +3,7 @@
 //! ```text
 //! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays]
 //! conformance validate [--exec 'CMD {file}']
-//! conformance bless [--out DIR]
+//! conformance bless [-o DIR]
 //! conformance list
 //! conformance validate-file FILE
 //! ```
@@ -79,9 +79,10 @@ enum Cmd {
     },
     /// Regenerates every case file (deterministically) into the cases directory.
     Bless {
-        /// Where to write (default: the committed cases directory).
-        #[arg(long, value_name = "DIR")]
-        out: Option<PathBuf>,
+        /// Where to write (default: the committed cases directory; `--out` is
+        /// an older spelling that still works).
+        #[arg(short, long, alias = "out", value_name = "DIR")]
+        output: Option<PathBuf>,
     },
     /// Lists the cases.
     List {
@@ -156,8 +157,8 @@ fn run(cli: Cli) -> Result<bool, String> {
                 .collect();
             Ok(suite::report(&outcomes, "files"))
         }
-        Cmd::Bless { out } => {
-            let root = out.unwrap_or_else(suite::default_cases_dir);
+        Cmd::Bless { output } => {
+            let root = output.unwrap_or_else(suite::default_cases_dir);
             let files = bless::generate()?;
             let written = bless::write(&root, &files)
                 .map_err(|e| format!("cannot write {}: {e}", root.display()))?;

@@ -165,7 +165,7 @@ fn committed_cases_are_reproducible() {
     let temp = tempfile::tempdir().expect("temp dir");
     let output = run(&[
         "bless",
-        "--out",
+        "-o",
         temp.path().to_str().expect("UTF-8 temp path"),
     ]);
     assert!(

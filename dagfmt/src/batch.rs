@@ -16,7 +16,7 @@
 //! against the input's length; errors name the line (text) or byte offset
 //! (binary).
 
-use std::io::{self, Write};
+use std::io::{self, BufRead as _, Read as _, Write};
 
 use thiserror::Error;
 
@@ -186,22 +186,27 @@ impl<'a> TextLines<'a> {
     }
 }
 
+/// The fields of text line number `line` (its bytes without the `\n`):
+/// `None` for a blank or comment-only line.
+fn line_fields(line: u64, raw: &[u8]) -> Result<Option<Vec<&str>>, BatchError> {
+    let text = std::str::from_utf8(raw).map_err(|_| text_error(line, "not UTF-8 text"))?;
+    let content = text.split('#').next().unwrap_or("");
+    // No record has more than 9 fields: keep at most 10 (enough to
+    // say "too many"), so a line of a million fields costs no memory.
+    let fields: Vec<&str> = content.split_ascii_whitespace().take(MAX_FIELDS).collect();
+    Ok((!fields.is_empty()).then_some(fields))
+}
+
 impl<'a> Iterator for TextLines<'a> {
     type Item = Result<(u64, Vec<&'a str>), BatchError>;
 
     fn next(&mut self) -> Option<Self::Item> {
         for (index, raw) in self.lines.by_ref() {
             let line = index as u64 + 1;
-            let text = match std::str::from_utf8(raw) {
-                Ok(t) => t,
-                Err(_) => return Some(Err(text_error(line, "not UTF-8 text"))),
-            };
-            let content = text.split('#').next().unwrap_or("");
-            // No record has more than 9 fields: keep at most 10 (enough to
-            // say "too many"), so a line of a million fields costs no memory.
-            let fields: Vec<&str> = content.split_ascii_whitespace().take(MAX_FIELDS).collect();
-            if !fields.is_empty() {
-                return Some(Ok((line, fields)));
+            match line_fields(line, raw) {
+                Err(e) => return Some(Err(e)),
+                Ok(Some(fields)) => return Some(Ok((line, fields))),
+                Ok(None) => {}
             }
         }
         None
@@ -210,15 +215,30 @@ impl<'a> Iterator for TextLines<'a> {
 
 /// Checks the header line of a text batch.
 fn text_header(lines: &mut TextLines<'_>, expected: &str, other: &str) -> Result<(), BatchError> {
-    let (line, fields) = match lines.next() {
-        None => {
-            return Err(text_error(
-                1,
-                format!("empty input: missing the `{expected}` header line"),
-            ));
+    match lines.next() {
+        None => Err(missing_header(expected)),
+        Some(r) => {
+            let (line, fields) = r?;
+            header_fields(line, &fields, expected, other)
         }
-        Some(r) => r?,
-    };
+    }
+}
+
+/// The error for a text batch with no content line.
+fn missing_header(expected: &str) -> BatchError {
+    text_error(
+        1,
+        format!("empty input: missing the `{expected}` header line"),
+    )
+}
+
+/// Checks the fields of the first content line of a text batch.
+fn header_fields(
+    line: u64,
+    fields: &[&str],
+    expected: &str,
+    other: &str,
+) -> Result<(), BatchError> {
     let expected_tag = expected.split(' ').next().unwrap_or(expected);
     let other_tag = other.split(' ').next().unwrap_or(other);
     if fields[0] == other_tag {
@@ -268,39 +288,44 @@ fn check_level(level: u32) -> Result<u8, String> {
     }
 }
 
-fn parse_text_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
+/// The ray of the text line number `line` with these fields.
+fn text_ray(line: u64, fields: &[&str]) -> Result<Ray, BatchError> {
     const NAMES: [&str; 8] = ["ox", "oy", "oz", "dx", "dy", "dz", "tmin", "tmax"];
+    if fields.len() != 8 && fields.len() != 9 {
+        return Err(text_error(
+            line,
+            format!(
+                "a ray needs 8 or 9 fields (ox oy oz dx dy dz tmin tmax [level]), found {}",
+                field_count(fields.len())
+            ),
+        ));
+    }
+    let mut values = [0f32; 8];
+    for (i, value) in values.iter_mut().enumerate() {
+        *value = parse_f32(line, NAMES[i], fields[i])?;
+    }
+    let level = match fields.get(8) {
+        None => None,
+        Some(f) => {
+            Some(check_level(parse_int(line, "level", f)?).map_err(|m| text_error(line, m))?)
+        }
+    };
+    Ok(Ray {
+        origin: [values[0], values[1], values[2]],
+        dir: [values[3], values[4], values[5]],
+        tmin: values[6],
+        tmax: values[7],
+        level,
+    })
+}
+
+fn parse_text_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
     let mut lines = TextLines::new(bytes);
     text_header(&mut lines, RAYS_TEXT_HEADER, HITS_TEXT_HEADER)?;
     let mut rays = Vec::new();
     for entry in lines {
         let (line, fields) = entry?;
-        if fields.len() != 8 && fields.len() != 9 {
-            return Err(text_error(
-                line,
-                format!(
-                    "a ray needs 8 or 9 fields (ox oy oz dx dy dz tmin tmax [level]), found {}",
-                    field_count(fields.len())
-                ),
-            ));
-        }
-        let mut values = [0f32; 8];
-        for (i, value) in values.iter_mut().enumerate() {
-            *value = parse_f32(line, NAMES[i], fields[i])?;
-        }
-        let level = match fields.get(8) {
-            None => None,
-            Some(f) => {
-                Some(check_level(parse_int(line, "level", f)?).map_err(|m| text_error(line, m))?)
-            }
-        };
-        rays.push(Ray {
-            origin: [values[0], values[1], values[2]],
-            dir: [values[3], values[4], values[5]],
-            tmin: values[6],
-            tmax: values[7],
-            level,
-        });
+        rays.push(text_ray(line, &fields)?);
     }
     Ok(rays)
 }
@@ -400,7 +425,22 @@ fn binary_header(
     record_size: usize,
     what: &str,
 ) -> Result<usize, BatchError> {
-    if bytes.len() < BINARY_HEADER_SIZE {
+    let head = &bytes[..bytes.len().min(BINARY_HEADER_SIZE)];
+    binary_header_of_length(head, bytes.len() as u64, magic, record_size, what)
+        .map(|count| count as usize)
+}
+
+/// [`binary_header`] from the header's bytes (`head`, all of them when the
+/// batch has that many) and the batch's length in bytes.
+fn binary_header_of_length(
+    head: &[u8],
+    length: u64,
+    magic: [u8; 4],
+    record_size: usize,
+    what: &str,
+) -> Result<u64, BatchError> {
+    let bytes = head;
+    if length < BINARY_HEADER_SIZE as u64 || bytes.len() < BINARY_HEADER_SIZE {
         return Err(binary_error(
             bytes.len(),
             format!(
@@ -423,12 +463,14 @@ fn binary_header(
         ));
     }
     let count = u64_at(bytes, 8);
-    let available = (bytes.len() - BINARY_HEADER_SIZE) as u64;
+    let available = length - BINARY_HEADER_SIZE as u64;
     let needed = count.checked_mul(record_size as u64);
     match needed {
-        Some(n) if n == available => Ok(count as usize),
+        // The records are in memory (or in a file the caller reads): the
+        // count fits an address.
+        Some(n) if n == available && usize::try_from(count).is_ok() => Ok(count),
         Some(n) if n < available => Err(binary_error(
-            BINARY_HEADER_SIZE + n as usize,
+            (BINARY_HEADER_SIZE as u64 + n) as usize,
             format!(
                 "{} bytes follow the {count} declared {what} records",
                 available - n
@@ -444,6 +486,30 @@ fn binary_header(
     }
 }
 
+/// Binary ray record number `i` (40 bytes).
+fn binary_ray(record: &[u8], i: usize) -> Result<Ray, BatchError> {
+    let at = BINARY_HEADER_SIZE + i * RAY_RECORD_SIZE;
+    let f = |k: usize| f32_at(record, 4 * k);
+    let level = match u32_at(record, 32) {
+        LEVEL_FULL_DEPTH => None,
+        l => Some(check_level(l).map_err(|m| binary_error(at + 32, format!("ray {i}: {m}")))?),
+    };
+    let flags = u32_at(record, 36);
+    if flags != 0 {
+        return Err(binary_error(
+            at + 36,
+            format!("ray {i}: reserved flags {flags:#x} are not zero"),
+        ));
+    }
+    Ok(Ray {
+        origin: [f(0), f(1), f(2)],
+        dir: [f(3), f(4), f(5)],
+        tmin: f(6),
+        tmax: f(7),
+        level,
+    })
+}
+
 fn parse_binary_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
     let count = binary_header(bytes, RAYS_MAGIC, RAY_RECORD_SIZE, "ray")?;
     let mut rays = Vec::with_capacity(count);
@@ -451,26 +517,7 @@ fn parse_binary_rays(bytes: &[u8]) -> Result<Vec<Ray>, BatchError> {
         .chunks_exact(RAY_RECORD_SIZE)
         .enumerate()
     {
-        let at = BINARY_HEADER_SIZE + i * RAY_RECORD_SIZE;
-        let f = |k: usize| f32_at(record, 4 * k);
-        let level = match u32_at(record, 32) {
-            LEVEL_FULL_DEPTH => None,
-            l => Some(check_level(l).map_err(|m| binary_error(at + 32, format!("ray {i}: {m}")))?),
-        };
-        let flags = u32_at(record, 36);
-        if flags != 0 {
-            return Err(binary_error(
-                at + 36,
-                format!("ray {i}: reserved flags {flags:#x} are not zero"),
-            ));
-        }
-        rays.push(Ray {
-            origin: [f(0), f(1), f(2)],
-            dir: [f(3), f(4), f(5)],
-            tmin: f(6),
-            tmax: f(7),
-            level,
-        });
+        rays.push(binary_ray(record, i)?);
     }
     Ok(rays)
 }
@@ -550,6 +597,208 @@ pub fn parse_hits(bytes: &[u8]) -> Result<Vec<Hit>, BatchError> {
     } else {
         parse_text_hits(bytes)
     }
+}
+
+// ----------------------------------------------------------- streamed input
+
+/// A ray batch read a chunk of rays at a time, so that a batch of any size
+/// is traced in bounded memory. Reads exactly what [`parse_rays`] reads,
+/// with the same errors, in the same order (binary when the input starts
+/// with `VRAY`, else text).
+///
+/// ```
+/// use dagfmt::batch::RayReader;
+/// let text = b"vdag-rays 1\n0 0 0 1 0 0 0 inf\n1 1 1 0 1 0 0 inf 3\n";
+/// let mut reader = RayReader::new(&text[..], Some(text.len() as u64)).unwrap();
+/// let mut rays = Vec::new();
+/// reader.read_chunk(1, &mut rays).unwrap();
+/// assert_eq!(rays.len(), 1);
+/// reader.read_chunk(1, &mut rays).unwrap();
+/// assert_eq!(rays[0].level, Some(3));
+/// reader.read_chunk(1, &mut rays).unwrap();
+/// assert!(rays.is_empty());
+/// ```
+#[derive(Debug)]
+pub struct RayReader<R> {
+    input: io::Chain<io::Cursor<Vec<u8>>, R>,
+    form: StreamForm,
+    /// One line or one chunk of records.
+    buffer: Vec<u8>,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum StreamForm {
+    /// Records `next..count` are still to be read.
+    Binary {
+        next: u64,
+        count: u64,
+        /// The batch's length in bytes, when the caller knew it.
+        length: Option<u64>,
+    },
+    /// Lines up to `line` (1-based) have been read; `header` once the
+    /// header line has been.
+    Text { line: u64, header: bool },
+}
+
+fn read_error(e: &io::Error) -> BatchError {
+    BatchError::Binary {
+        offset: 0,
+        message: format!("cannot read the batch: {e}"),
+    }
+}
+
+impl<R: io::BufRead> RayReader<R> {
+    /// Starts reading a ray batch. `length`, the batch's length in bytes when
+    /// known (a file's), lets a binary batch's count be checked against it
+    /// before any ray is read, as [`parse_rays`] checks it; without it, a
+    /// count that does not match is found at the end.
+    pub fn new(mut input: R, length: Option<u64>) -> Result<Self, BatchError> {
+        let mut head = Vec::with_capacity(BINARY_HEADER_SIZE);
+        (&mut input)
+            .take(BINARY_HEADER_SIZE as u64)
+            .read_to_end(&mut head)
+            .map_err(|e| read_error(&e))?;
+        let form = if head.starts_with(&RAYS_MAGIC) {
+            let known = length.unwrap_or(head.len() as u64);
+            let count = if length.is_some() || head.len() < BINARY_HEADER_SIZE {
+                binary_header_of_length(&head, known, RAYS_MAGIC, RAY_RECORD_SIZE, "ray")?
+            } else {
+                // Checked against the records as they come.
+                binary_header_of_length(
+                    &head,
+                    u64_at(&head, 8)
+                        .checked_mul(RAY_RECORD_SIZE as u64)
+                        .and_then(|n| n.checked_add(BINARY_HEADER_SIZE as u64))
+                        // A count no input can hold: as if nothing followed.
+                        .unwrap_or(BINARY_HEADER_SIZE as u64),
+                    RAYS_MAGIC,
+                    RAY_RECORD_SIZE,
+                    "ray",
+                )?
+            };
+            head.clear();
+            StreamForm::Binary {
+                next: 0,
+                count,
+                length,
+            }
+        } else if head.starts_with(&HITS_MAGIC) {
+            return Err(binary_error(0, "this is a binary hit batch, expected rays"));
+        } else {
+            StreamForm::Text {
+                line: 0,
+                header: false,
+            }
+        };
+        Ok(RayReader {
+            input: io::Cursor::new(head).chain(input),
+            form,
+            buffer: Vec::new(),
+        })
+    }
+
+    /// The number of rays of a binary batch (a text batch does not say).
+    pub fn declared_count(&self) -> Option<u64> {
+        match self.form {
+            StreamForm::Binary { count, .. } => Some(count),
+            StreamForm::Text { .. } => None,
+        }
+    }
+
+    /// Replaces `rays` with the next at most `max` (at least 1) rays of the
+    /// batch; leaves it empty at the end.
+    pub fn read_chunk(&mut self, max: usize, rays: &mut Vec<Ray>) -> Result<(), BatchError> {
+        rays.clear();
+        let max = max.max(1);
+        match &mut self.form {
+            StreamForm::Binary {
+                next,
+                count,
+                length,
+            } => {
+                let n = (*count - *next).min(max as u64) as usize;
+                self.buffer.resize(n * RAY_RECORD_SIZE, 0);
+                let read =
+                    read_full(&mut self.input, &mut self.buffer).map_err(|e| read_error(&e))?;
+                if read < self.buffer.len() {
+                    // Only without a known length: the batch ends early.
+                    let follow = *next * RAY_RECORD_SIZE as u64 + read as u64;
+                    return Err(binary_error(
+                        8,
+                        format!(
+                            "truncated: {count} ray records need {} bytes but {follow} follow the header",
+                            u128::from(*count) * RAY_RECORD_SIZE as u128
+                        ),
+                    ));
+                }
+                for (k, record) in self.buffer.chunks_exact(RAY_RECORD_SIZE).enumerate() {
+                    rays.push(binary_ray(record, (*next as usize) + k)?);
+                }
+                *next += n as u64;
+                if *next == *count && length.is_none() {
+                    let mut extra = 0u64;
+                    let mut probe = [0u8; 4096];
+                    loop {
+                        match self.input.read(&mut probe) {
+                            Ok(0) => break,
+                            Ok(k) => extra += k as u64,
+                            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                            Err(e) => return Err(read_error(&e)),
+                        }
+                    }
+                    if extra > 0 {
+                        let records = *count * RAY_RECORD_SIZE as u64;
+                        return Err(binary_error(
+                            (BINARY_HEADER_SIZE as u64 + records) as usize,
+                            format!("{extra} bytes follow the {count} declared ray records"),
+                        ));
+                    }
+                }
+                Ok(())
+            }
+            StreamForm::Text { line, header } => {
+                while rays.len() < max {
+                    self.buffer.clear();
+                    let read = self
+                        .input
+                        .read_until(b'\n', &mut self.buffer)
+                        .map_err(|e| read_error(&e))?;
+                    if read == 0 {
+                        if !*header {
+                            return Err(missing_header(RAYS_TEXT_HEADER));
+                        }
+                        break;
+                    }
+                    *line += 1;
+                    let raw = self.buffer.strip_suffix(b"\n").unwrap_or(&self.buffer);
+                    let Some(fields) = line_fields(*line, raw)? else {
+                        continue;
+                    };
+                    if *header {
+                        rays.push(text_ray(*line, &fields)?);
+                    } else {
+                        header_fields(*line, &fields, RAYS_TEXT_HEADER, HITS_TEXT_HEADER)?;
+                        *header = true;
+                    }
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// Reads until `buffer` is full or the input ends; returns the bytes read.
+fn read_full(input: &mut impl io::Read, buffer: &mut [u8]) -> io::Result<usize> {
+    let mut done = 0;
+    while done < buffer.len() {
+        match input.read(&mut buffer[done..]) {
+            Ok(0) => break,
+            Ok(n) => done += n,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(done)
 }
 
 // ------------------------------------------------------------------- output
@@ -642,8 +891,20 @@ pub fn write_rays_binary<W: Write>(w: &mut W, rays: &[Ray]) -> io::Result<()> {
 /// `miss`). Fails (`InvalidInput`) on a level outside 1..=21, a face over 6 or
 /// an index of `u64::MAX`.
 pub fn write_hits_text<W: Write>(w: &mut W, hits: &[Hit]) -> io::Result<()> {
-    writeln!(w, "{HITS_TEXT_HEADER}")?;
-    for (i, hit) in hits.iter().enumerate() {
+    write_hits_text_header(w)?;
+    write_hits_text_records(w, hits, 0)
+}
+
+/// The first line of a text hit batch, for writing one in parts:
+/// [`write_hits_text`] is this, then [`write_hits_text_records`].
+pub fn write_hits_text_header<W: Write>(w: &mut W) -> io::Result<()> {
+    writeln!(w, "{HITS_TEXT_HEADER}")
+}
+
+/// The lines of `hits`, the first being hit number `first` of the batch
+/// (for messages); see [`write_hits_text_header`].
+pub fn write_hits_text_records<W: Write>(w: &mut W, hits: &[Hit], first: usize) -> io::Result<()> {
+    for (i, hit) in (first..).zip(hits) {
         check_hit(i, hit)?;
         if !hit.hit {
             writeln!(w, "miss")?;
@@ -667,10 +928,28 @@ pub fn write_hits_text<W: Write>(w: &mut W, hits: &[Hit]) -> io::Result<()> {
 /// Writes hits as a binary batch (a `Hit` with `hit == false` is written as
 /// the canonical miss record). Fails like [`write_hits_text`].
 pub fn write_hits_binary<W: Write>(w: &mut W, hits: &[Hit]) -> io::Result<()> {
+    write_hits_binary_header(w, hits.len() as u64)?;
+    write_hits_binary_records(w, hits, 0)
+}
+
+/// The header of a binary hit batch of `count` records, for writing one in
+/// parts: [`write_hits_binary`] is this, then [`write_hits_binary_records`].
+/// The count is bytes 8..16 (little-endian), for a writer that learns it at
+/// the end.
+pub fn write_hits_binary_header<W: Write>(w: &mut W, count: u64) -> io::Result<()> {
     w.write_all(&HITS_MAGIC)?;
     w.write_all(&BATCH_VERSION.to_le_bytes())?;
-    w.write_all(&(hits.len() as u64).to_le_bytes())?;
-    for (i, hit) in hits.iter().enumerate() {
+    w.write_all(&count.to_le_bytes())
+}
+
+/// The records of `hits`, the first being hit number `first` of the batch
+/// (for messages); see [`write_hits_binary_header`].
+pub fn write_hits_binary_records<W: Write>(
+    w: &mut W,
+    hits: &[Hit],
+    first: usize,
+) -> io::Result<()> {
+    for (i, hit) in (first..).zip(hits) {
         check_hit(i, hit)?;
         let mut record = [0u8; HIT_RECORD_SIZE];
         if hit.hit {

@@ -15,7 +15,8 @@
 //! - [`transport`]: unpacking arbitrary bytes never panics nor returns more
 //!   than the limit, and unpack(pack(x)) == x;
 //! - [`batch`]: parse(write(parse(x))) == parse(x) for rays and hits, text
-//!   and binary, and a binary batch that parses is written back byte for byte.
+//!   and binary, and a binary batch that parses is written back byte for byte;
+//!   the streamed ray reader agrees with the whole-batch parser.
 //!
 //! Not part of the stable API.
 
@@ -359,10 +360,54 @@ fn same_hits(a: &[Hit], b: &[Hit]) -> bool {
         })
 }
 
+/// Reads `bytes` with [`batch::RayReader`] in chunks of `chunk` rays, with
+/// or without the length.
+fn read_streamed(
+    bytes: &[u8],
+    chunk: usize,
+    known_length: bool,
+) -> Result<Vec<Ray>, batch::BatchError> {
+    let length = known_length.then_some(bytes.len() as u64);
+    let mut reader = batch::RayReader::new(bytes, length)?;
+    let (mut all, mut part) = (Vec::new(), Vec::new());
+    loop {
+        reader.read_chunk(chunk, &mut part)?;
+        if part.is_empty() {
+            return Ok(all);
+        }
+        assert!(
+            part.len() <= chunk,
+            "a chunk of {} rays for {chunk}",
+            part.len()
+        );
+        all.extend_from_slice(&part);
+    }
+}
+
 /// The batch harness: parses `bytes` as rays and as hits; whatever parses is
-/// written in both forms and parsed again, and must come back the same.
+/// written in both forms and parsed again, and must come back the same. The
+/// streamed ray reader reads the same rays, or fails with the same error
+/// (given the length; without it, it may only find a bad count at the end).
 pub fn batch(bytes: &[u8]) {
-    if let Ok(rays) = batch::parse_rays(bytes) {
+    let whole = batch::parse_rays(bytes);
+    for chunk in [1, 3, 1000] {
+        let streamed = read_streamed(bytes, chunk, true);
+        match (&whole, &streamed) {
+            (Ok(a), Ok(b)) => assert!(same_rays(a, b), "streamed rays differ (chunk {chunk})"),
+            (Err(a), Err(b)) => assert_eq!(a, b, "streamed error differs (chunk {chunk})"),
+            _ => panic!("parse_rays {whole:?} but streamed {streamed:?} (chunk {chunk})"),
+        }
+        let unknown = read_streamed(bytes, chunk, false);
+        assert_eq!(
+            whole.is_ok(),
+            unknown.is_ok(),
+            "streamed without the length: {unknown:?}, parse_rays {whole:?}"
+        );
+        if let (Ok(a), Ok(b)) = (&whole, &unknown) {
+            assert!(same_rays(a, b), "streamed rays differ without the length");
+        }
+    }
+    if let Ok(rays) = whole {
         let mut text = Vec::new();
         batch::write_rays_text(&mut text, &rays).expect("writing parsed rays as text");
         let again = batch::parse_rays(&text).expect("parsing written text rays");

@@ -256,7 +256,7 @@ fn prepare_dir(dir: &Path) -> Result<(), ConvertError> {
             .is_none();
         if !empty && !dir.join(MARKER).exists() {
             return Err(ConvertError::Usage(format!(
-                "{} exists and was not made by the demo; choose another --out",
+                "{} exists and was not made by the demo; choose another -o/--output",
                 dir.display()
             )));
         }

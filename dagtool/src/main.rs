@@ -129,7 +129,8 @@ enum Command {
         /// The .vdag file.
         input: PathBuf,
         /// The .vdag.zst file to write.
-        output: PathBuf,
+        #[command(flatten)]
+        output: OutputArg,
         /// zstd level (1..=22).
         #[arg(long, default_value_t = dagfmt::transport::DEFAULT_LEVEL)]
         level: i32,
@@ -142,7 +143,8 @@ enum Command {
         /// The .vdag.zst file.
         input: PathBuf,
         /// The .vdag file to write.
-        output: PathBuf,
+        #[command(flatten)]
+        output: OutputArg,
         /// Refuse files that would unpack to more than this many bytes (e.g. 4G).
         #[arg(long)]
         max_size: Option<String>,
@@ -176,8 +178,8 @@ enum Command {
     Demo {
         /// Directory to write into (created; only a directory made by the demo
         /// is ever written into again).
-        #[arg(long, default_value = "vdag-demo")]
-        out: PathBuf,
+        #[arg(short, long, alias = "out", default_value = "vdag-demo")]
+        output: PathBuf,
         /// Conversion depth.
         #[arg(long, default_value_t = 10)]
         depth: u32,
@@ -191,6 +193,28 @@ enum Command {
         #[arg(long)]
         cpu: bool,
     },
+}
+
+/// The output file of `pack` and `unpack`: `-o/--output FILE`, as for every
+/// command that writes a file. The second positional argument of earlier
+/// versions still works (hidden from the help).
+#[derive(Args, Debug)]
+struct OutputArg {
+    /// The file to write.
+    #[arg(short, long, value_name = "FILE", conflicts_with = "positional")]
+    output: Option<PathBuf>,
+    /// The file to write (the older spelling, kept working).
+    #[arg(hide = true, value_name = "OUTPUT")]
+    positional: Option<PathBuf>,
+}
+
+impl OutputArg {
+    /// The output path, however it was given.
+    fn path(self) -> Result<PathBuf, ConvertError> {
+        self.output.or(self.positional).ok_or_else(|| {
+            ConvertError::Usage("the output file is missing: give -o/--output FILE".into())
+        })
+    }
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -354,6 +378,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                     "zstd level {level} is outside 1..=22"
                 )));
             }
+            let output = output.path()?;
             let (a, b) = cmd::pack::pack(&input, &output, level, force)?;
             print_stdout(&format!(
                 "{}: {a} bytes -> {}: {b} bytes ({:.1}%)\n",
@@ -364,7 +389,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
             Ok(0)
         }
         Command::Demo {
-            out,
+            output,
             depth,
             width,
             height,
@@ -376,7 +401,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 )));
             }
             let opts = dagtool::demo::DemoOptions {
-                out_dir: out,
+                out_dir: output,
                 depth: convert::check_depth(depth)?,
                 width,
                 height,
@@ -418,6 +443,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 })?,
                 None => dagfmt::transport::DEFAULT_MAX_SIZE,
             };
+            let output = output.path()?;
             let (a, b) = cmd::pack::unpack(&input, &output, max, force)?;
             print_stdout(&format!(
                 "{}: {a} bytes -> {}: {b} bytes (valid)\n",

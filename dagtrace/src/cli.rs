@@ -18,3 +18,12 @@ pub fn usage_error_line(error: &clap::Error) -> String {
         None => line,
     }
 }
+
+/// The peak resident memory of this process in MiB (`VmHWM`), where the
+/// system says (Linux).
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}

@@ -226,3 +226,47 @@ fn pack_and_unpack_round_trip() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a valid .vdag"));
 }
+
+/// Every command that writes a file takes `-o/--output`; `pack` and `unpack`
+/// also keep the second positional argument of earlier versions, with the
+/// same bytes, and refuse a command that names neither or both.
+#[test]
+fn pack_and_unpack_take_dash_o_and_the_old_positional() {
+    let (dir, file) = sample();
+    let d = dir.path();
+    let (short, long, positional) = (d.join("a.zst"), d.join("b.zst"), d.join("c.zst"));
+    run_ok(&["pack", s(&file), "-o", s(&short)]);
+    run_ok(&["pack", s(&file), "--output", s(&long)]);
+    run_ok(&["pack", s(&file), s(&positional)]);
+    let packed = std::fs::read(&short).unwrap();
+    assert_eq!(packed, std::fs::read(&long).unwrap());
+    assert_eq!(packed, std::fs::read(&positional).unwrap());
+    let (back_short, back_positional) = (d.join("a.vdag"), d.join("c.vdag"));
+    run_ok(&["unpack", s(&short), "-o", s(&back_short)]);
+    run_ok(&["unpack", s(&short), s(&back_positional)]);
+    let original = std::fs::read(&file).unwrap();
+    assert_eq!(std::fs::read(&back_short).unwrap(), original);
+    assert_eq!(std::fs::read(&back_positional).unwrap(), original);
+    // Neither spelling: a usage error naming the option; both: a clap usage error.
+    for command in ["pack", "unpack"] {
+        let o = run(&[command, s(&short)]);
+        assert_eq!(o.status.code(), Some(2), "{command} without an output");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("-o/--output"), "{command}: {err}");
+        assert_eq!(err.trim_end().lines().count(), 1, "{command}: {err}");
+        let o = run(&[command, s(&short), "-o", s(&d.join("x")), s(&d.join("y"))]);
+        assert_eq!(o.status.code(), Some(2), "{command} with two outputs");
+        assert!(!d.join("x").exists() && !d.join("y").exists());
+    }
+    // `demo` names its output folder with -o too (`--out` still works); its
+    // help lists -o/--output and no longer --out.
+    let o = run_ok(&["demo", "--help"]);
+    let help = String::from_utf8_lossy(&o.stdout);
+    assert!(help.contains("-o, --output"), "{help}");
+    assert!(!help.contains("--out "), "{help}");
+    for command in ["pack", "unpack"] {
+        let o = run_ok(&[command, "--help"]);
+        let help = String::from_utf8_lossy(&o.stdout);
+        assert!(help.contains("-o, --output <FILE>"), "{command}: {help}");
+    }
+}

@@ -17,6 +17,7 @@ mod fuzz_smoke;
 mod mapped_files;
 mod meshes;
 mod out_of_core;
+mod readme;
 mod solid;
 mod surface;
 mod verify;

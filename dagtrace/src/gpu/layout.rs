@@ -26,12 +26,31 @@ pub const INFO_EXHAUSTED: u32 = 2;
 pub const INFO_MALFORMED: u32 = 4;
 /// `GpuHit::info` bits `8..16`: the level of the hit cell.
 pub const INFO_LEVEL_SHIFT: u32 = 8;
-/// `GpuHit::info` bits `16..24`: the entry face (render only; the batch path
-/// computes faces on the host in f64).
+/// `GpuHit::info` bits `16..24`: the entry face.
 pub const INFO_FACE_SHIFT: u32 = 16;
 
 /// `GpuRay::flags` bit: the host already answered this ray; the shader writes a miss.
 pub const RAY_SKIP: u32 = 1;
+/// `GpuRay::flags` bit: the host computes this ray's entry parameter and face
+/// (rare rays: no direction, a far origin, an extreme scale); the shader
+/// only finds the cell. Echoed in `GpuHit::cell.w` as [`INFO_HOST_ANSWER`].
+pub const RAY_HOST_ANSWER: u32 = 2;
+/// `GpuRay::flags` bits `4..7`: the axes whose direction is not (treated as)
+/// zero, which alone decide the entry face (bit `4 + i` for axis `i`).
+pub const RAY_MOVING_SHIFT: u32 = 4;
+/// `GpuHit::cell.w` bit (batch): the ray was flagged [`RAY_SKIP`] (answered
+/// on the host); nothing else in the record is meaningful.
+pub const INFO_SKIPPED: u32 = 16;
+/// `GpuHit::cell.w` bit (batch): the host must compute `t` and the face (the
+/// ray was flagged [`RAY_HOST_ANSWER`], or it starts inside the cell it hits).
+pub const INFO_HOST_ANSWER: u32 = 8;
+/// Largest magnitude of `GpuRay::scale_exponent` the shader answers itself:
+/// `t * 2^-k` is then exact in f32 for every `t` the traversal produces.
+pub const MAX_SHADER_SCALE_EXPONENT: i32 = 64;
+/// Bound given to infinite parameter bounds (`tmin = -inf`, `tmax = inf`)
+/// in the shader: beyond every plane parameter of a ray whose origin lies
+/// within 16 cube sizes (at most 2^86), so the traversal is the same.
+pub const PARAMETER_BOUND: f32 = 1.0e30;
 
 /// `GpuParams::options` bit: compute the dense attribute index of hits.
 pub const OPTION_INDEX: u32 = 1;
@@ -174,10 +193,13 @@ gpu_struct! {
         pub octant: u32,
         /// Level of detail traced (1 ..= depth).
         pub level: u32,
-        /// [`RAY_SKIP`].
+        /// [`RAY_SKIP`], [`RAY_HOST_ANSWER`], the moving axes
+        /// ([`RAY_MOVING_SHIFT`]).
         pub flags: u32,
-        /// Zero.
-        pub pad0: u32,
+        /// `k` (an `i32`'s bits) of the power of two `2^k` the direction was
+        /// scaled by: the shader reports `t * 2^-k`, the parameter of the
+        /// ray as given (the CPU tracer's `t * inv_scale`).
+        pub scale_exponent: u32,
     }
 }
 
@@ -187,7 +209,8 @@ gpu_struct! {
         /// Cell coordinates at the hit level (xyz, file frame); `w` = info bits
         /// ([`INFO_HIT`], [`INFO_EXHAUSTED`], [`INFO_MALFORMED`], level, face).
         pub cell: [u32; 4],
-        /// Entry parameter (render only; the batch path computes it in f64).
+        /// Entry parameter (batch: of the ray as given, unless
+        /// [`INFO_HOST_ANSWER`]; render: world units along the view ray).
         pub t: f32,
         /// Low 32 bits of the dense attribute index.
         pub index_lo: u32,
@@ -282,6 +305,11 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
     constant_u32(&mut s, "INFO_LEVEL_SHIFT", INFO_LEVEL_SHIFT);
     constant_u32(&mut s, "INFO_FACE_SHIFT", INFO_FACE_SHIFT);
     constant_u32(&mut s, "RAY_SKIP", RAY_SKIP);
+    constant_u32(&mut s, "RAY_HOST_ANSWER", RAY_HOST_ANSWER);
+    constant_u32(&mut s, "RAY_MOVING_SHIFT", RAY_MOVING_SHIFT);
+    constant_u32(&mut s, "INFO_HOST_ANSWER", INFO_HOST_ANSWER);
+    constant_u32(&mut s, "INFO_SKIPPED", INFO_SKIPPED);
+    constant_f32(&mut s, "PARAMETER_BOUND", PARAMETER_BOUND);
     constant_u32(&mut s, "OPTION_INDEX", OPTION_INDEX);
     constant_u32(&mut s, "OPTION_WRITE_HITS", OPTION_WRITE_HITS);
     constant_u32(&mut s, "OPTION_WRITE_IMAGE", OPTION_WRITE_IMAGE);
@@ -362,5 +390,6 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
 pub(crate) fn shader_source(config: &ShaderConfig) -> String {
     let mut s = preamble(config);
     s.push_str(include_str!("trace.wgsl"));
+    s.push_str(include_str!("batch.wgsl"));
     s
 }

@@ -20,13 +20,16 @@
 //!
 //! # How the work is split
 //!
-//! - Host (f64, `prepare.rs`): world to grid space, the rays that need no DAG
-//!   (NaN, empty interval, outside the cube, level 0), clipping, scaling and
-//!   mirroring as the CPU tracer does; afterwards the entry parameter
-//!   and face of the cell found, in f64.
-//! - Shader (f32, `trace.wgsl`): the traversal, finding the cell, and the
-//!   dense attribute index of the hit (with a host-made table of the counts of
-//!   saturated nodes).
+//! - Host (f64, `prepare.rs`): the CPU tracer's set-up of each ray (world to
+//!   grid space, scaling, mirroring; rays that need no DAG answered there),
+//!   written straight into the GPU's upload buffer on all cores.
+//! - Shader (f32, `trace.wgsl`, `batch.wgsl`): the traversal, finding the
+//!   cell, its entry parameter and face (as the CPU tracer computes them),
+//!   and the dense attribute index of the hit (with a host-made table of the
+//!   counts of saturated nodes).
+//! - Batches stream through the GPU in chunks, the host setting one up while
+//!   the GPU traces the one before (`batch.rs`); memory is bounded by two
+//!   chunks whatever the batch size.
 //!
 //! The shader and the host share their records and constants through
 //! `layout.rs`, which generates the WGSL declarations.
@@ -41,13 +44,13 @@
 //! ([`GpuError::IterationLimit`]), so no file can hang the GPU. Other damage a
 //! validator would catch gives wrong answers, not failures.
 
+mod batch;
 mod layout;
 mod lit;
 mod prepare;
 mod upload;
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -55,30 +58,18 @@ use dagfmt::batch::{Hit, Ray};
 use dagfmt::layout::AttributeKind;
 use dagfmt::{Dag, FormatError};
 use glam::DVec3;
-use rayon::prelude::*;
 use wgpu::util::DeviceExt as _;
 
 use crate::camera::{Camera, CameraError};
 use layout::{
     BATCH_WORKGROUP_SIZE, BINDING_HITS, BINDING_IMAGE, BINDING_PARAMS, BINDING_RAYS, GpuHit,
-    GpuParams, GpuRay, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_LEVEL_SHIFT, INFO_MALFORMED,
+    GpuParams, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_LEVEL_SHIFT, INFO_MALFORMED,
     IO_STORAGE_BUFFERS, MAX_PAGES, MAX_STORED_LEVELS, OPTION_INDEX, OPTION_WRITE_HITS,
-    OPTION_WRITE_IMAGE, RAY_SKIP, RENDER_TILE, ShaderConfig,
+    OPTION_WRITE_IMAGE, RENDER_TILE, ShaderConfig,
 };
 pub use lit::LitTimes;
 use prepare::{Frame, Setup};
 use upload::Placement;
-
-/// What the shader gets for a ray answered on the host: it writes an empty
-/// record for it and does nothing else.
-const SKIPPED_RAY: GpuRay = GpuRay {
-    origin: [0.0; 4],
-    inv_dir: [0.0; 4],
-    octant: 0,
-    level: 0,
-    flags: RAY_SKIP,
-    pad0: 0,
-};
 
 /// Why the GPU tracer cannot do what was asked.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -167,7 +158,9 @@ pub struct GpuOptions {
     /// a valid DAG reaches (it visits at most a few nodes per cell it crosses
     /// on each level).
     pub max_iterations: Option<u32>,
-    /// Rays per dispatch (bounds the GPU buffers of one batch step).
+    /// Rays per dispatch: the chunk a batch is streamed in. Two chunks are
+    /// in flight at once (one traced while the next is set up), and their
+    /// buffers, 160 bytes a ray each, are kept between calls.
     pub rays_per_dispatch: u32,
     /// Whether hits carry the dense attribute index (attribute kind 1).
     pub compute_index: bool,
@@ -180,7 +173,7 @@ impl Default for GpuOptions {
             stack: StackMode::Full,
             max_binding_bytes: None,
             max_iterations: None,
-            rays_per_dispatch: 1 << 20,
+            rays_per_dispatch: 1 << 18,
             compute_index: true,
         }
     }
@@ -438,9 +431,13 @@ pub struct TraceStats {
     /// Rays traced by the shader (the others were answered on the host and
     /// handed to it flagged to be skipped).
     pub gpu_rays: u64,
-    /// Time from submitting the dispatches to their completion (with the
-    /// copies of rays in and hits out).
+    /// Time from the first chunk's submission to the completion of the
+    /// last one's, as the host saw it: the dispatches with the copies of
+    /// rays in and hits out (the host's work on other chunks overlaps it).
     pub gpu_time: Duration,
+    /// Time the host spent on its own share: the rays' set-up and the
+    /// answers (on all cores), not waiting for the GPU.
+    pub host_time: Duration,
     /// Time of the whole call.
     pub total_time: Duration,
     /// Sum of the traversal loop iterations of all rays.
@@ -478,6 +475,8 @@ pub struct GpuTracer {
     config: ShaderConfig,
     /// The lit render's passes, compiled on first use (`lit.rs`).
     lit: std::sync::OnceLock<Result<Arc<lit::LitPipelines>, GpuError>>,
+    /// The batch path's GPU buffers, kept between calls (`batch.rs`).
+    slots: Mutex<batch::Slots>,
 }
 
 impl GpuTracer {
@@ -608,6 +607,7 @@ impl GpuTracer {
             total_bytes: placement.total_words * 4,
             config,
             lit: std::sync::OnceLock::new(),
+            slots: Mutex::new(batch::Slots::default()),
         })
     }
 
@@ -646,111 +646,8 @@ impl GpuTracer {
 
     /// [`GpuTracer::trace`] with timings and iteration counts.
     pub fn trace_with_stats(&self, rays: &[Ray]) -> Result<(Vec<Hit>, TraceStats), GpuError> {
-        let started = Instant::now();
-        let mut stats = TraceStats::default();
         let mut hits = vec![Hit::MISS; rays.len()];
-        let mut gpu_rays = Vec::new();
-        // One dispatch per chunk of input rays, so that host memory stays
-        // bounded whatever the batch size; set-up and answers on all cores.
-        let chunk = self.options.rays_per_dispatch as usize;
-        for (first, (rays, hits)) in (0..)
-            .step_by(chunk)
-            .zip(rays.chunks(chunk).zip(hits.chunks_mut(chunk)))
-        {
-            // The shader gets every ray of the chunk, in order: a ray answered
-            // here goes with `RAY_SKIP` (the shader writes an empty record
-            // for it at once). So the set-up writes each ray in place, with
-            // no list of traced rays to compact and no per-ray record kept
-            // for the answers, which set a hit's ray up again (the same
-            // function, the same numbers). Building those lists one ray
-            // after the other took most of the call's host time.
-            let too_deep = AtomicUsize::new(usize::MAX);
-            rays.par_iter()
-                .zip(hits.par_iter_mut())
-                .enumerate()
-                .map(|(i, (ray, hit))| match prepare::setup(&self.frame, ray) {
-                    Ok(Setup::Trace(gpu, _)) => gpu,
-                    Ok(Setup::Done(answer)) => {
-                        *hit = answer;
-                        SKIPPED_RAY
-                    }
-                    Err(_) => {
-                        too_deep.fetch_min(i, Ordering::Relaxed);
-                        SKIPPED_RAY
-                    }
-                })
-                .collect_into_vec(&mut gpu_rays);
-            let i = too_deep.into_inner();
-            if let Some(Err(prepare::LevelTooDeep(level))) =
-                rays.get(i).map(|ray| prepare::setup(&self.frame, ray))
-            {
-                return Err(GpuError::LevelTooDeep {
-                    ray: first + i,
-                    level,
-                    depth: self.frame.depth,
-                });
-            }
-            let traced = gpu_rays
-                .par_iter()
-                .filter(|r| r.flags & RAY_SKIP == 0)
-                .count();
-            if traced == 0 {
-                continue;
-            }
-            let t0 = Instant::now();
-            let results = self.dispatch_batch(&gpu_rays)?;
-            stats.gpu_time += t0.elapsed();
-            stats.gpu_rays += traced as u64;
-            let (iterations, most, fault) = results
-                .par_iter()
-                .enumerate()
-                .map(|(i, r)| {
-                    let fault = (r.cell[3] & (INFO_EXHAUSTED | INFO_MALFORMED) != 0).then_some(i);
-                    (u64::from(r.iterations), r.iterations, fault)
-                })
-                .reduce(
-                    || (0, 0, None),
-                    |a, b| (a.0 + b.0, a.1.max(b.1), a.2.or(b.2)),
-                );
-            stats.iterations += iterations;
-            stats.max_iterations = stats.max_iterations.max(most);
-            if let Some(i) = fault {
-                return Err(if results[i].cell[3] & INFO_EXHAUSTED != 0 {
-                    GpuError::IterationLimit {
-                        ray: first + i,
-                        limit: self.base_params.max_iterations,
-                    }
-                } else {
-                    GpuError::MalformedPointer { ray: first + i }
-                });
-            }
-            hits.par_iter_mut()
-                .zip(rays)
-                .zip(&results)
-                .filter(|(_, r)| r.cell[3] & INFO_HIT != 0)
-                .for_each(|((hit, ray), r)| {
-                    // Only traced rays have hits.
-                    let Ok(Setup::Trace(_, grid)) = prepare::setup(&self.frame, ray) else {
-                        return;
-                    };
-                    let level = ((r.cell[3] >> INFO_LEVEL_SHIFT) & 0xff) as u8;
-                    let voxel = [r.cell[0], r.cell[1], r.cell[2]];
-                    let (t, face) = prepare::answer(self.frame.depth, &grid, voxel, level);
-                    let index = self
-                        .frame
-                        .indexed
-                        .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32);
-                    *hit = Hit {
-                        hit: true,
-                        t,
-                        voxel,
-                        level,
-                        face,
-                        index,
-                    };
-                });
-        }
-        stats.total_time = started.elapsed();
+        let stats = self.trace_into_with_stats(rays, &mut hits)?;
         Ok((hits, stats))
     }
 
@@ -798,49 +695,6 @@ impl GpuTracer {
                     },
                 ],
             })
-    }
-
-    /// Traces one dispatch worth of prepared rays.
-    fn dispatch_batch(&self, rays: &[GpuRay]) -> Result<Vec<GpuHit>, GpuError> {
-        let inner = &self.context.inner;
-        let device = &inner.device;
-        let params = GpuParams {
-            ray_count: rays.len() as u32,
-            ..self.base_params
-        };
-        let params = self.params_buffer(&params);
-        let scope = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let ray_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("vdag rays"),
-            contents: bytemuck::cast_slice(rays),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let hit_bytes = (rays.len() * size_of::<GpuHit>()) as u64;
-        let hit_buffer = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("vdag hits"),
-            size: hit_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Device(e.to_string()));
-        }
-        let group = self.io_group(&params, &ray_buffer, &hit_buffer, &inner.dummy);
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("vdag batch"),
-        });
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: None,
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.pipelines.batch);
-            pass.set_bind_group(0, &group, &[]);
-            pass.set_bind_group(1, &self.pages_group, &[]);
-            pass.dispatch_workgroups((rays.len() as u32).div_ceil(BATCH_WORKGROUP_SIZE), 1, 1);
-        }
-        inner.queue.submit([encoder.finish()]);
-        self.context.read_back(&hit_buffer, hit_bytes)
     }
 
     /// Camera parameters in grid space.

@@ -1,20 +1,27 @@
-//! Host-side set-up of batch rays (f64) and the final answer (f64).
+//! Host-side set-up of batch rays (f64), and the answers the host computes.
 //!
-//! The set-up follows the CPU tracer's (`tracer.rs`, `Tracer::setup`), so
-//! that the shader's f32 traversal starts from (nearly always) the same
-//! numbers and finds the same cell: world to grid space in f64, rays that cannot hit
-//! answered here (NaN, `tmin > tmax`, outside the cube, level 0), direction
-//! components below 2^-60 of the largest treated as zero, the ray clipped to the
-//! root cube, its direction scaled by a power of two (exact), far origins moved
-//! to the entry point, and the frame mirrored so that every direction component
-//! is non-negative. A ray with no direction becomes a point query, sent to
-//! the shader as the centre of the cell that holds it (found here in f64), so
-//! the shader's descent ends in the cell the CPU's f64 `floor` picks.
+//! The set-up is the CPU tracer's (`tracer.rs`, `Tracer::setup` and
+//! `Tracer::prepare`), with the very same f64 operations, so that the shader's
+//! f32 traversal starts from the same numbers: world to grid space, rays that
+//! cannot hit answered here (NaN, `tmin > tmax`, an empty volume), direction
+//! components below 2^-60 of the largest treated as zero, the direction
+//! scaled by a power of two (exact), and the frame mirrored so that every
+//! direction component is non-negative; three reciprocals from one division.
+//! The shader then reports the entry parameter and face as the CPU tracer
+//! does (`batch.wgsl`), so for these rays the host does no more.
 //!
-//! The reported entry parameter and face are computed here in f64 from the
-//! grid-space ray and the cell the shader found, again as the CPU tracer does.
+//! Rare rays keep the earlier f64 path, and their answers are computed here
+//! from the cell the shader found ([`answer`]): rays with no direction (a
+//! point query, sent as the centre of the cell that holds it, found here in
+//! f64, so the shader's descent ends in the cell the CPU's f64 `floor`
+//! picks), far origins (more than 16 cube sizes away: clipped to the cube and
+//! re-based at the entry point), level 0 (answered here), scales beyond
+//! [`MAX_SHADER_SCALE_EXPONENT`], and hits whose ray starts inside the cell.
 
-use super::layout::{GpuRay, TINY_DIRECTION_INVERSE};
+use super::layout::{
+    GpuRay, MAX_SHADER_SCALE_EXPONENT, PARAMETER_BOUND, RAY_HOST_ANSWER, RAY_MOVING_SHIFT,
+    TINY_DIRECTION_INVERSE,
+};
 use dagfmt::batch::{Hit, Ray};
 
 /// Direction components below this fraction of the largest count as zero.
@@ -49,8 +56,9 @@ pub(crate) struct GridRay {
 pub(crate) enum Setup {
     /// Answered without the DAG.
     Done(Hit),
-    /// To be traced by the shader.
-    Trace(GpuRay, GridRay),
+    /// To be traced by the shader; answered there too unless the ray is
+    /// flagged [`RAY_HOST_ANSWER`] (then by [`host_answer`]).
+    Trace(GpuRay),
 }
 
 /// A ray whose level of detail is deeper than the DAG.
@@ -82,7 +90,7 @@ pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
     }
     let resolution = (1u64 << depth) as f64;
     let max_origin = origin.iter().fold(0f64, |m, v| m.max(v.abs()));
-    let eps = 2f64.powi(-12) + 2f64.powi(-21) * resolution.max(max_origin);
+    let eps = tolerance(resolution, max_origin);
     let largest = dir.iter().fold(0f64, |m, v| m.max(v.abs()));
     let (tmin, tmax) = (f64::from(ray.tmin), f64::from(ray.tmax));
     if largest < f64::MIN_POSITIVE {
@@ -114,15 +122,37 @@ pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
             ],
             octant: 0,
             level: u32::from(level),
-            flags: 0,
-            pad0: 0,
+            flags: RAY_HOST_ANSWER,
+            scale_exponent: 0,
         };
-        return Ok(Setup::Trace(gpu, grid));
+        return Ok(Setup::Trace(gpu));
     }
-    for d in &mut dir {
+    let mut moving = 0u32;
+    for (i, d) in dir.iter_mut().enumerate() {
         if d.abs() < largest * TINY_DIRECTION {
             *d = 0.0;
+        } else {
+            moving |= 1 << i;
         }
+    }
+    // The power of two (exact scaling) that brings the largest component to
+    // [1, 2), as `Tracer::prepare` takes it.
+    let scale_bits = largest.to_bits() & 0x7ff0_0000_0000_0000;
+    let exponent = (scale_bits >> 52) as i32 - 1023;
+    if level > 0
+        && max_origin <= resolution * 16.0
+        && (1..=2045).contains(&(scale_bits >> 52))
+        && exponent.abs() <= MAX_SHADER_SCALE_EXPONENT
+    {
+        return Ok(Setup::Trace(usual(
+            origin,
+            dir,
+            [f64::from(ray.tmin), f64::from(ray.tmax)],
+            scale_bits,
+            resolution,
+            moving,
+            level,
+        )));
     }
     let grid = GridRay {
         origin,
@@ -145,8 +175,7 @@ pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
     if level == 0 {
         return Ok(Setup::Done(root_hit(frame, &grid)));
     }
-    // A power of two (exact scaling) that brings the largest component to [1, 2).
-    let scale = f64::from_bits(largest.to_bits() & 0x7ff0_0000_0000_0000);
+    let scale = f64::from_bits(scale_bits);
     let base = if max_origin > resolution * 16.0 {
         start
     } else {
@@ -175,10 +204,95 @@ pub(crate) fn setup(frame: &Frame, ray: &Ray) -> Result<Setup, LevelTooDeep> {
         inv_dir: [inv32[0], inv32[1], inv32[2], ((end - base) * scale) as f32],
         octant,
         level: u32::from(level),
-        flags: 0,
-        pad0: 0,
+        flags: RAY_HOST_ANSWER,
+        scale_exponent: 0,
     };
-    Ok(Setup::Trace(gpu, grid))
+    Ok(Setup::Trace(gpu))
+}
+
+/// `Tracer::prepare` with no re-basing, for a ray the shader answers: the
+/// same f64 operations, rounded to f32 at the same points; infinite bounds
+/// become [`PARAMETER_BOUND`] (the traversal is the same, see there).
+#[inline(always)]
+fn usual(
+    origin: [f64; 3],
+    dir: [f64; 3],
+    [tmin, tmax]: [f64; 2],
+    scale_bits: u64,
+    resolution: f64,
+    moving: u32,
+    level: u8,
+) -> GpuRay {
+    let scale = f64::from_bits(scale_bits);
+    // 1 / scale is a power of two too: negate the exponent (no division).
+    let inv_scale = f64::from_bits((2046 - (scale_bits >> 52)) << 52);
+    // |d| / scale (exact) in [2^-60, 2); zero axes count as 1 in the product.
+    let scaled = dir.map(|d| if d == 0.0 { 1.0 } else { d.abs() * inv_scale });
+    let reciprocal = 1.0 / (scaled[0] * scaled[1] * scaled[2]);
+    let inverse = [
+        reciprocal * scaled[1] * scaled[2],
+        reciprocal * scaled[0] * scaled[2],
+        reciprocal * scaled[0] * scaled[1],
+    ];
+    let mut octant = 0u32;
+    let mut o32 = [0f32; 3];
+    let mut inv32 = [0f32; 3];
+    for i in 0..3 {
+        let mut o = origin[i];
+        if dir[i] < 0.0 {
+            octant |= 1 << i;
+            o = resolution - o;
+        }
+        o32[i] = o as f32;
+        inv32[i] = if dir[i] == 0.0 {
+            TINY_DIRECTION_INVERSE
+        } else {
+            inverse[i] as f32
+        };
+    }
+    let limit = f64::from(PARAMETER_BOUND);
+    let bound = |t: f64| (t * scale).clamp(-limit, limit) as f32;
+    GpuRay {
+        origin: [o32[0], o32[1], o32[2], bound(tmin)],
+        inv_dir: [inv32[0], inv32[1], inv32[2], bound(tmax)],
+        octant,
+        level: u32::from(level),
+        flags: moving << RAY_MOVING_SHIFT,
+        scale_exponent: ((scale_bits >> 52) as i32 - 1023) as u32,
+    }
+}
+
+/// The tolerance of the ray/hit semantics in grid units.
+fn tolerance(resolution: f64, max_origin: f64) -> f64 {
+    2f64.powi(-12) + 2f64.powi(-21) * resolution.max(max_origin)
+}
+
+/// The ray in f64 grid space as the set-up sees it (for a ray that
+/// [`setup`] sends to the shader).
+fn grid_ray(frame: &Frame, ray: &Ray) -> GridRay {
+    let origin: [f64; 3] =
+        std::array::from_fn(|i| (f64::from(ray.origin[i]) - frame.root_min[i]) * frame.grid_scale);
+    let mut dir = ray.dir.map(|d| f64::from(d) * frame.grid_scale);
+    let largest = dir.iter().fold(0f64, |m, v| m.max(v.abs()));
+    for d in &mut dir {
+        if largest < f64::MIN_POSITIVE || d.abs() < largest * TINY_DIRECTION {
+            *d = 0.0;
+        }
+    }
+    let max_origin = origin.iter().fold(0f64, |m, v| m.max(v.abs()));
+    GridRay {
+        origin,
+        dir,
+        tmin: f64::from(ray.tmin),
+        tmax: f64::from(ray.tmax),
+        eps: tolerance((1u64 << frame.depth) as f64, max_origin),
+    }
+}
+
+/// Entry parameter and face of `ray`, which [`setup`] sent to the shader,
+/// into the cell `cell` of `level` the shader found, in f64 (see [`answer`]).
+pub(crate) fn host_answer(frame: &Frame, ray: &Ray, cell: [u32; 3], level: u8) -> (f32, u8) {
+    answer(frame.depth, &grid_ray(frame, ray), cell, level)
 }
 
 /// The level-0 answer: the root cell itself.
@@ -197,7 +311,7 @@ fn root_hit(frame: &Frame, grid: &GridRay) -> Hit {
 /// Entry parameter and face of the grid ray into cell `cell` of `level`, in
 /// f64. The traversal is exact up to f32 rounding, so the cell may be missed
 /// by a hair; then the cell grown by the tolerance is used.
-pub(crate) fn answer(depth: u8, grid: &GridRay, cell: [u32; 3], level: u8) -> (f32, u8) {
+fn answer(depth: u8, grid: &GridRay, cell: [u32; 3], level: u8) -> (f32, u8) {
     let s = (1u64 << (depth - level)) as f64;
     let lo = cell.map(|c| f64::from(c) * s);
     let hi = lo.map(|v| v + s);

@@ -437,26 +437,7 @@ fn hit_record(f: Found, neg: u32) -> GpuHit {
     return h;
 }
 
-@compute @workgroup_size(BATCH_WORKGROUP_SIZE)
-fn trace_batch(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.ray_count) {
-        return;
-    }
-    let ray = rays[i];
-    if ((ray.flags & RAY_SKIP) != 0u || params.empty != 0u) {
-        hits[i] = miss_record();
-        return;
-    }
-    var p: Prepared;
-    p.o = ray.origin.xyz;
-    p.inv = ray.inv_dir.xyz;
-    p.tmin = ray.origin.w;
-    p.tmax = ray.inv_dir.w;
-    p.neg = ray.octant;
-    p.level = ray.level;
-    hits[i] = hit_record(traverse(p), p.neg);
-}
+// The batch entry point, `trace_batch`, is in batch.wgsl (appended after this file).
 
 // Entry parameter (in the prepared ray's units) and face of cell `cell`
 // (mirrored) of `level`, in f32.

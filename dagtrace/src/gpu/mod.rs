@@ -68,7 +68,7 @@ use layout::{
     OPTION_WRITE_IMAGE, RENDER_TILE, ShaderConfig,
 };
 pub use lit::LitTimes;
-use prepare::{Frame, Setup};
+use prepare::Frame;
 use upload::Placement;
 
 /// Why the GPU tracer cannot do what was asked.

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use dagfmt::batch::{Ray, format_f32};
+use dagfmt::batch::{self, Ray, format_f32};
 use dagfmt::{AttributeKind, Dag};
 
 use crate::expect;
@@ -147,7 +147,29 @@ pub fn trace_case_files(case: &TraceCase) -> Result<[(String, Vec<u8>); 3], Stri
     for group in &case.groups {
         writeln!(rays, "# {}", group.comment).expect("String");
         writeln!(expected, "# {}", group.comment).expect("String");
-        for ray in &group.rays {
+        if !group.literals.is_empty() && group.literals.len() != group.rays.len() {
+            return Err(format!("{}: literals and rays differ in number", case.name));
+        }
+        for (i, ray) in group.rays.iter().enumerate() {
+            let line = match group.literals.get(i) {
+                Some(literal) => {
+                    let parsed = batch::parse_rays(format!("vdag-rays 1\n{literal}\n").as_bytes())
+                        .map_err(|e| format!("{}: literal `{literal}`: {e}", case.name))?;
+                    if parsed[..] != [*ray] {
+                        return Err(format!(
+                            "{}: literal `{literal}` reads as {parsed:?}, not {ray:?}",
+                            case.name
+                        ));
+                    }
+                    literal.clone()
+                }
+                None => format_ray(ray),
+            };
+            rays.push_str(&line);
+            rays.push('\n');
+            if case.reject_batch {
+                continue;
+            }
             let oray = oracle_ray(ray, depth);
             if !checked.contains(&oray.level) {
                 checked.push(oray.level);
@@ -156,11 +178,21 @@ pub fn trace_case_files(case: &TraceCase) -> Result<[(String, Vec<u8>); 3], Stri
             let e = oracle
                 .expect(&dag, &oray)
                 .map_err(|e| format!("{}: ray {ray:?}: {e}", case.name))?;
-            rays.push_str(&format_ray(ray));
-            rays.push('\n');
             expected.push_str(&expect::format_expectation(&e));
             expected.push('\n');
         }
+    }
+    if case.reject_batch {
+        if !case
+            .groups
+            .iter()
+            .flat_map(|g| &g.rays)
+            .any(|r| r.level.is_some_and(|l| l > depth))
+        {
+            return Err(format!("{}: no ray to reject the batch for", case.name));
+        }
+        expected.push_str(expect::REJECT_BATCH);
+        expected.push('\n');
     }
     Ok([
         (format!("{TRACE_DIR}/{}.vdag", case.name), case.file.clone()),

@@ -555,14 +555,23 @@ fn expect_in(cells: &LevelCells, depth: u8, kind: AttributeKind, ray: &GridRay) 
     }
 }
 
-/// The smallest f32 that is not below `v`.
+/// The smallest f32 that is not below `v`; `-inf` when `v` lies below the
+/// finite f32 range (spec/VDAG.md § 20.8: a bound beyond the f32 range is
+/// reached by the f32 overflow, as IEEE rounding of such a `t` gives).
 pub(crate) fn f32_at_least(v: f64) -> f32 {
+    if v < -f64::from(f32::MAX) {
+        return f32::NEG_INFINITY;
+    }
     let f = v as f32;
     if f64::from(f) < v { f.next_up() } else { f }
 }
 
-/// The largest f32 that is not above `v`.
+/// The largest f32 that is not above `v`; `+inf` when `v` lies above the
+/// finite f32 range (see [`f32_at_least`]).
 pub(crate) fn f32_at_most(v: f64) -> f32 {
+    if v > f64::from(f32::MAX) {
+        return f32::INFINITY;
+    }
     let f = v as f32;
     if f64::from(f) > v { f.next_down() } else { f }
 }

@@ -445,9 +445,24 @@ pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outc
         Ok(r) => r,
         Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.rays.display())),
     };
-    let expectations = match expect::parse_file(&expect_text) {
-        Ok(e) if e.len() == rays.len() => e,
-        Ok(e) => {
+    let expectations = match expect::parse_case(&expect_text) {
+        Ok(expect::CaseExpectation::RejectBatch) => {
+            // § 20.2: a level deeper than the file makes the batch an error.
+            let failures = match backend.trace(case, &file, &rays) {
+                Err(_) => Vec::new(),
+                Ok(_) => vec![
+                    "the batch has a ray whose level is deeper than the file: the tracer must reject the whole batch (fail, write no answers), but it answered"
+                        .to_string(),
+                ],
+            };
+            return Outcome {
+                name: case.name.clone(),
+                checked: rays.len(),
+                failures,
+            };
+        }
+        Ok(expect::CaseExpectation::Answers(e)) if e.len() == rays.len() => e,
+        Ok(expect::CaseExpectation::Answers(e)) => {
             return Outcome::error(
                 &case.name,
                 format!("{} expectations for {} rays", e.len(), rays.len()),

@@ -33,6 +33,7 @@
 //! # }
 //! ```
 
+use std::cell::RefCell;
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 use std::fmt;
@@ -270,10 +271,26 @@ pub struct Judge<'a> {
     counts: Vec<Vec<AtomicU64>>,
 }
 
-/// The judge's occupancy queries at one level: point queries into the DAG.
+/// The judge's occupancy queries at one level: point queries into the DAG,
+/// the last few answers remembered (the robustness tests of one cell ask for
+/// the same few neighbours again and again).
 struct DagCells<'j, 'a> {
     judge: &'j Judge<'a>,
     level: u8,
+    recent: RefCell<Vec<([i64; 3], bool)>>,
+}
+
+/// Occupancy answers [`DagCells`] remembers.
+const RECENT: usize = 27;
+
+impl<'j, 'a> DagCells<'j, 'a> {
+    fn new(judge: &'j Judge<'a>, level: u8) -> Self {
+        DagCells {
+            judge,
+            level,
+            recent: RefCell::new(Vec::with_capacity(RECENT)),
+        }
+    }
 }
 
 impl Occupancy for DagCells<'_, '_> {
@@ -286,9 +303,19 @@ impl Occupancy for DagCells<'_, '_> {
         if cell.iter().any(|&c| c < 0 || c >= n) {
             return false;
         }
-        self.judge
-            .lookup(self.level, cell.map(|c| c as u32))
-            .is_some()
+        let mut recent = self.recent.borrow_mut();
+        if let Some(&(_, occupied)) = recent.iter().find(|(c, _)| *c == cell) {
+            return occupied;
+        }
+        let occupied = self
+            .judge
+            .lookup(self.level, cell.map(|c| c as u32), false)
+            .is_some();
+        if recent.len() == RECENT {
+            recent.remove(0);
+        }
+        recent.push((cell, occupied));
+        occupied
     }
 }
 
@@ -357,8 +384,11 @@ impl<'a> Judge<'a> {
     }
 
     /// Judges every answer, on all cores; `answers[i]` answers `rays[i]`.
-    /// Returns one entry per ray: `None` when accepted. Fails when the counts
-    /// differ.
+    /// Returns one entry per ray: `None` when accepted.
+    ///
+    /// # Panics
+    ///
+    /// When `rays` and `answers` differ in length.
     pub fn judge_batch(&self, rays: &[Ray], answers: &[Hit]) -> Vec<Option<Rejection>> {
         assert_eq!(rays.len(), answers.len(), "one answer per ray");
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -441,7 +471,7 @@ impl<'a> Judge<'a> {
         if cell.iter().any(|&c| u64::from(c) >= 1u64 << level) {
             return reject(Reason::CellOutsideVolume, full(self), None);
         }
-        let Some(index) = self.lookup(level, cell) else {
+        let Some(index) = self.lookup(level, cell, true) else {
             return reject(Reason::EmptyCell, full(self), None);
         };
         // Condition 2.
@@ -466,7 +496,8 @@ impl<'a> Judge<'a> {
             }
         };
         if entry > bounded + gray.eps_t {
-            return reject(Reason::NotFirst { entry }, bounded, Some(range(bounded)));
+            // No t is accepted for a cell that is not (nearly) first.
+            return reject(Reason::NotFirst { entry }, bounded, None);
         }
         let (lo, hi) = range(bounded);
         if !(lo <= answer.t && answer.t <= hi) {
@@ -504,7 +535,7 @@ impl<'a> Judge<'a> {
     /// children, and no cell entered after the best point found can hold an
     /// earlier one.
     fn t_minus(&self, ray: &GridRay, level: u8, bound: f64) -> f64 {
-        let cells = DagCells { judge: self, level };
+        let cells = DagCells::new(self, level);
         let depth = self.depth();
         if self.dag.is_empty() {
             return f64::INFINITY;
@@ -606,8 +637,9 @@ impl<'a> Judge<'a> {
     }
 
     /// The dense index of the first voxel of `cell` of `level` (§ 12.3) when
-    /// the cell is occupied. `cell` must lie inside the level.
-    fn lookup(&self, level: u8, cell: [u32; 3]) -> Option<u64> {
+    /// the cell is occupied (0 unless `with_index`: occupancy queries, the
+    /// bulk of them, need no voxel counts). `cell` must lie inside the level.
+    fn lookup(&self, level: u8, cell: [u32; 3], with_index: bool) -> Option<u64> {
         if self.dag.is_empty() {
             return None;
         }
@@ -625,9 +657,11 @@ impl<'a> Judge<'a> {
             if l < self.leaf_level {
                 let node = self.dag.node(l, word).ok()?;
                 let pointer = node.child_pointer(child)?;
-                for earlier in 0..child {
-                    if let Some(p) = node.child_pointer(earlier) {
-                        index += self.count(l + 1, p);
+                if with_index {
+                    for earlier in 0..child {
+                        if let Some(p) = node.child_pointer(earlier) {
+                            index += self.count(l + 1, p);
+                        }
                     }
                 }
                 word = pointer;

@@ -582,6 +582,11 @@ pub(crate) fn f32_at_most(v: f64) -> f32 {
 /// cells).
 pub(crate) fn robust<O: Occupancy + ?Sized>(cells: &O, p: [f64; 3], eps: f64, s: f64) -> bool {
     let n = (1i64 << cells.level()) as f64;
+    // A cube wider than the volume (an origin so far away that eps_g spans
+    // it) is never inside it.
+    if 2.0 * eps > n * s {
+        return false;
+    }
     let mut lo = [0i64; 3];
     let mut hi = [0i64; 3];
     for axis in 0..3 {
@@ -621,6 +626,14 @@ pub(crate) fn first_robust_in<O: Occupancy + ?Sized>(
     exit: f64,
 ) -> Option<f64> {
     let eps = ray.eps;
+    let n = 1i64 << cells.level();
+    if 2.0 * eps > n as f64 * s {
+        // No cube of half size eps fits in the volume (see `robust`).
+        return None;
+    }
+    // Only planes k s +- eps with 0 <= k <= n can change robustness: beyond
+    // them the cube reaches out of the volume on both sides. (Clamping also
+    // bounds the loop for far origins, whose eps spans many cells.)
     let reach = (2.0 * eps / s).ceil() as i64 + 1;
     let mut stops = vec![entry];
     for (axis, &ca) in cell.iter().enumerate() {
@@ -628,7 +641,7 @@ pub(crate) fn first_robust_in<O: Occupancy + ?Sized>(
             continue;
         }
         let c = i64::from(ca);
-        for k in c - reach..=c + 1 + reach {
+        for k in (c - reach).max(0)..=(c + 1 + reach).min(n) {
             for plane in [k as f64 * s - eps, k as f64 * s + eps] {
                 let t = (plane - ray.o[axis]) / ray.d[axis];
                 if entry < t && t < exit {

@@ -8,7 +8,7 @@ use std::process::Command;
 
 use conformance::expect;
 use conformance::judge::{Judge, Reason};
-use conformance::oracle::{Oracle, OracleRay};
+use conformance::oracle::{Expectation, Oracle, OracleRay};
 use conformance::rng::Rng;
 use conformance::suite;
 use dagfmt::batch::{self, Hit, Ray};
@@ -581,4 +581,63 @@ fn the_judge_command_lists_rejections_and_sets_its_status() {
             "{stderr}"
         );
     }
+}
+
+/// Origins far away, up to `f32::MAX`: where `eps_g` spans the whole volume
+/// the judge must answer at once (nothing can be robustly inside, and the
+/// planes it examines are bounded by the volume), and it must still agree
+/// with the oracle and accept the tracer. (Origins whose `eps_g` spans many
+/// cells but less than the volume, about 10^7 to 10^8 voxels away here, are
+/// slow for both: each robustness test then looks at (2 eps_g)^3 cells.)
+#[test]
+fn far_origins_are_judged_and_agree_with_the_oracle() {
+    let file = half_solid();
+    let dag = Dag::open(&file).expect("opens");
+    let judge = Judge::new(&dag).expect("valid");
+    let mut rays = Vec::new();
+    for far in [1e4f32, 1e5, 1e9, 1e30, f32::MAX] {
+        rays.push(Ray::new([4.5, 7.5, far], [0.0, 0.0, -1.0]));
+        rays.push(Ray::new([far, 7.5, 8.0], [-1.0, 0.0, 0.0]));
+        rays.push(Ray::new([-far, -far, 20.0], [1.0, 1.0, -0.1]));
+    }
+    let hits = dagtrace::Tracer::new(&dag)
+        .expect("tracer")
+        .trace_batch(&rays)
+        .expect("traces");
+    let mut oracle = Oracle::new(&dag);
+    let started = std::time::Instant::now();
+    for (ray, hit) in rays.iter().zip(&hits) {
+        let e = oracle
+            .expect(
+                &dag,
+                &OracleRay {
+                    origin: ray.origin,
+                    dir: ray.dir,
+                    tmin: ray.tmin,
+                    tmax: ray.tmax,
+                    level: 5,
+                },
+            )
+            .expect("oracle");
+        // Where eps_g spans the volume every cell is acceptable: probe a few.
+        let mut answers = probes(&Expectation {
+            cells: e.cells.iter().take(3).cloned().collect(),
+            ..e.clone()
+        });
+        answers.push(*hit);
+        for answer in answers {
+            assert_eq!(
+                expect::judge(&e, &answer).is_ok(),
+                judge.judge(ray, &answer).is_ok(),
+                "{}: answer {}",
+                bless_ray(ray),
+                expect::format_answer(&answer)
+            );
+        }
+    }
+    assert!(
+        started.elapsed().as_secs() < 30,
+        "far origins took {:?}",
+        started.elapsed()
+    );
 }

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use dagfmt::batch::{Ray, format_f32};
+use dagfmt::batch::{self, Ray, format_f32};
 use dagfmt::{AttributeKind, Dag};
 
 use crate::expect;
@@ -147,7 +147,29 @@ pub fn trace_case_files(case: &TraceCase) -> Result<[(String, Vec<u8>); 3], Stri
     for group in &case.groups {
         writeln!(rays, "# {}", group.comment).expect("String");
         writeln!(expected, "# {}", group.comment).expect("String");
-        for ray in &group.rays {
+        if !group.literals.is_empty() && group.literals.len() != group.rays.len() {
+            return Err(format!("{}: literals and rays differ in number", case.name));
+        }
+        for (i, ray) in group.rays.iter().enumerate() {
+            let line = match group.literals.get(i) {
+                Some(literal) => {
+                    let parsed = batch::parse_rays(format!("vdag-rays 1\n{literal}\n").as_bytes())
+                        .map_err(|e| format!("{}: literal `{literal}`: {e}", case.name))?;
+                    if parsed[..] != [*ray] {
+                        return Err(format!(
+                            "{}: literal `{literal}` reads as {parsed:?}, not {ray:?}",
+                            case.name
+                        ));
+                    }
+                    literal.clone()
+                }
+                None => format_ray(ray),
+            };
+            rays.push_str(&line);
+            rays.push('\n');
+            if case.reject_batch {
+                continue;
+            }
             let oray = oracle_ray(ray, depth);
             if !checked.contains(&oray.level) {
                 checked.push(oray.level);
@@ -156,11 +178,21 @@ pub fn trace_case_files(case: &TraceCase) -> Result<[(String, Vec<u8>); 3], Stri
             let e = oracle
                 .expect(&dag, &oray)
                 .map_err(|e| format!("{}: ray {ray:?}: {e}", case.name))?;
-            rays.push_str(&format_ray(ray));
-            rays.push('\n');
             expected.push_str(&expect::format_expectation(&e));
             expected.push('\n');
         }
+    }
+    if case.reject_batch {
+        if !case
+            .groups
+            .iter()
+            .flat_map(|g| &g.rays)
+            .any(|r| r.level.is_some_and(|l| l > depth))
+        {
+            return Err(format!("{}: no ray to reject the batch for", case.name));
+        }
+        expected.push_str(expect::REJECT_BATCH);
+        expected.push('\n');
     }
     Ok([
         (format!("{TRACE_DIR}/{}.vdag", case.name), case.file.clone()),
@@ -172,12 +204,46 @@ pub fn trace_case_files(case: &TraceCase) -> Result<[(String, Vec<u8>); 3], Stri
     ])
 }
 
-/// The index line of a validator case.
-fn index_line(case: &ValidateCase) -> String {
-    let outcome = case
-        .expected
-        .map_or_else(|| "valid".to_string(), |c| c.code().to_string());
-    format!("{}.vdag {outcome} # {}", case.name, case.description)
+/// The index line of a validator case: `FILE valid`, or `FILE CODE@OFFSET`
+/// followed by the other codes the defect breaks too. The offset and the
+/// other codes are those the reference validator reports; a case whose
+/// expected code it does not report is an error of the generator.
+fn index_line(case: &ValidateCase) -> Result<String, String> {
+    let findings = dagfmt::validate::validate(&case.file);
+    let outcome = match case.expected {
+        None if findings.is_empty() => "valid".to_string(),
+        None => {
+            return Err(format!(
+                "{}: the valid case is rejected: {}",
+                case.name, findings[0]
+            ));
+        }
+        Some(code) => {
+            let first = findings.iter().find(|f| f.code == code).ok_or_else(|| {
+                format!(
+                    "{}: the reference validator does not report {code}",
+                    case.name
+                )
+            })?;
+            let mut also: Vec<&str> = findings
+                .iter()
+                .filter(|f| f.code != code)
+                .map(|f| f.code.code())
+                .collect();
+            also.sort_unstable();
+            also.dedup();
+            let mut outcome = format!("{}@{:#x}", code.code(), first.offset);
+            for other in also {
+                outcome.push(' ');
+                outcome.push_str(other);
+            }
+            outcome
+        }
+    };
+    Ok(format!(
+        "{}.vdag {outcome} # {}",
+        case.name, case.description
+    ))
 }
 
 /// Every case file, by path relative to the cases root.
@@ -191,8 +257,10 @@ pub fn generate() -> Result<BTreeMap<String, Vec<u8>>, String> {
         }
     }
     let mut index = String::from(
-        "# Validator cases: FILE valid | FILE CODE. A conforming validator accepts the valid files\n\
-         # and rejects each other file reporting CODE (the rule the file breaks).\n",
+        "# Validator cases: FILE valid | FILE CODE@OFFSET [ALSO...]. A conforming validator accepts\n\
+         # the valid files and rejects each other file reporting CODE (the rule the file breaks) at\n\
+         # byte OFFSET (spec/VDAG.md § 17.4); it may also report the ALSO codes, which the same\n\
+         # defect breaks, and no others (strict mode, spec/CONFORMANCE.md § 6).\n",
     );
     for (code, why) in malformed::UNTESTABLE {
         writeln!(
@@ -204,7 +272,7 @@ pub fn generate() -> Result<BTreeMap<String, Vec<u8>>, String> {
         .expect("String");
     }
     for case in malformed::validate_cases() {
-        index.push_str(&index_line(&case));
+        index.push_str(&index_line(&case)?);
         index.push('\n');
         let path = format!("{VALIDATE_DIR}/{}.vdag", case.name);
         if files.insert(path.clone(), case.file).is_some() {

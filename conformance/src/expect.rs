@@ -9,6 +9,9 @@
 //! # CELL = X,Y,Z:T_LO,T_HI:FACES:INDEX
 //! ```
 //!
+//! A file whose only line after the header is `reject-batch` expects the
+//! tracer to reject the whole batch (a ray's level is deeper than the file).
+//!
 //! `miss`: only a miss is accepted. `hit`: only a hit on one of the listed
 //! cells. `either`: a miss or a hit on one of the listed cells. A hit on a
 //! listed cell must report that cell's coordinates, the line's `LEVEL`, a `t`
@@ -24,6 +27,34 @@ use crate::oracle::{AcceptableCell, Expectation, Verdict};
 
 /// First line of an expectation file.
 pub const EXPECT_HEADER: &str = "vdag-expect 1";
+
+/// The one line of an expectation file whose batch must be rejected as a
+/// whole (a ray asks for a level deeper than the file, spec/VDAG.md § 20.2).
+pub const REJECT_BATCH: &str = "reject-batch";
+
+/// What a case expects of a tracer.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CaseExpectation {
+    /// One expectation per ray.
+    Answers(Vec<Expectation>),
+    /// The tracer must reject the whole batch: fail, and write no answers.
+    RejectBatch,
+}
+
+/// Parses an expectation file that may say `reject-batch`.
+pub fn parse_case(text: &str) -> Result<CaseExpectation, String> {
+    let mut content = text
+        .lines()
+        .map(|l| l.split('#').next().unwrap_or("").trim())
+        .filter(|l| !l.is_empty());
+    if content.next() == Some(EXPECT_HEADER) && content.next() == Some(REJECT_BATCH) {
+        return match content.next() {
+            None => Ok(CaseExpectation::RejectBatch),
+            Some(l) => Err(format!("`{l}` follows `{REJECT_BATCH}`")),
+        };
+    }
+    parse_file(text).map(CaseExpectation::Answers)
+}
 
 fn format_faces(faces: u8) -> String {
     (0..7u8)

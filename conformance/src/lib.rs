@@ -3,6 +3,8 @@
 //! - [`oracle`]: the independent oracle: what a tracer may answer for a ray,
 //!   computed by brute force over the occupied cells, with the tolerance rules;
 //! - [`expect`]: the expectation file format and the judge of answers;
+//! - [`judge`]: judging any answers on any file by the acceptance rule
+//!   itself, without expectations (scales to millions of rays);
 //! - [`scenes`] and [`malformed`]: the tracer and validator cases;
 //! - [`bless`]: writing the committed case files, reproducibly;
 //! - [`suite`]: running the cases against in-process or external tracers and
@@ -13,6 +15,7 @@
 
 pub mod bless;
 pub mod expect;
+pub mod judge;
 pub mod malformed;
 pub mod mesh;
 pub mod model;

@@ -1,8 +1,9 @@
 //! `conformance`: runs the `.vdag` conformance suite (spec/CONFORMANCE.md).
 //!
 //! ```text
-//! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays]
-//! conformance validate [--exec 'CMD {file}']
+//! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays] [--timeout S]
+//! conformance validate [--exec 'CMD {file}'] [--lenient] [--timeout S]
+//! conformance judge FILE.vdag --rays RAYS (--hits HITS | --exec 'CMD {dag} {rays} {hits}') [--timeout S]
 //! conformance bless [-o DIR]
 //! conformance list
 //! conformance validate-file FILE
@@ -10,14 +11,19 @@
 //!
 //! `run` and `validate` print each failing case with the expected and actual
 //! answers, end with the line `N passed, N failed` and exit with status 1 when
-//! a case fails (2 when the suite itself cannot run).
+//! a case fails (2 when the suite itself cannot run). `judge` judges any
+//! answers on any file by the acceptance rule of spec/VDAG.md § 20.8: one line
+//! per rejected ray, a summary, status 1 when an answer is rejected.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use conformance::judge::Judge;
 use conformance::suite::{self, ExecTracer, ExecValidator, TraceBackend, ValidateBackend};
-use conformance::{bless, malformed};
+use conformance::{bless, expect, malformed};
+use dagfmt::batch;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -56,6 +62,10 @@ enum Cmd {
         /// Give the external tracer the rays in the binary batch format.
         #[arg(long, requires = "exec")]
         binary_rays: bool,
+        /// Seconds one case of the external tracer may take; past it the
+        /// case fails and the command's process group is killed.
+        #[arg(long, value_name = "SECONDS", default_value = "60", value_parser = parse_timeout)]
+        timeout: Duration,
         /// The cases directory (default: the committed one).
         #[arg(long, value_name = "DIR")]
         cases: Option<PathBuf>,
@@ -70,12 +80,48 @@ enum Cmd {
         /// printing the error code (such as E041) for invalid ones.
         #[arg(long, value_name = "COMMAND")]
         exec: Option<String>,
+        /// Only require the expected code somewhere in the output. By default
+        /// (strict) it must be reported with its byte offset, and no code
+        /// outside the case's expected set may be reported.
+        #[arg(long)]
+        lenient: bool,
+        /// Seconds the external validator may take per file; past it the case
+        /// fails and the command's process group is killed.
+        #[arg(long, value_name = "SECONDS", default_value = "60", value_parser = parse_timeout)]
+        timeout: Duration,
         /// The cases directory (default: the committed one).
         #[arg(long, value_name = "DIR")]
         cases: Option<PathBuf>,
         /// Only cases whose name contains this text.
         #[arg(long, value_name = "TEXT")]
         filter: Option<String>,
+    },
+    /// Judges a tracer's answers for any file and rays by the acceptance rule
+    /// of spec/VDAG.md § 20.8: prints one line per rejected answer and a
+    /// summary; exits 1 when an answer is rejected.
+    Judge {
+        /// The .vdag file the rays were traced in (it must be valid).
+        file: PathBuf,
+        /// The rays (text or binary batch).
+        #[arg(long, value_name = "RAYS")]
+        rays: PathBuf,
+        /// The answers (text or binary hit batch), one per ray.
+        #[arg(
+            long,
+            value_name = "HITS",
+            required_unless_present = "exec",
+            conflicts_with = "exec"
+        )]
+        hits: Option<PathBuf>,
+        /// Run a tracer first: a shell command in which {dag}, {rays} and
+        /// {hits} are replaced by the file, the rays and the path the answers
+        /// must be written to.
+        #[arg(long, value_name = "COMMAND")]
+        exec: Option<String>,
+        /// Seconds the command may take; past it the judge gives up and the
+        /// command's process group is killed.
+        #[arg(long, value_name = "SECONDS", default_value = "60", value_parser = parse_timeout, requires = "exec")]
+        timeout: Duration,
     },
     /// Regenerates every case file (deterministically) into the cases directory.
     Bless {
@@ -99,6 +145,93 @@ enum Cmd {
     },
 }
 
+fn parse_timeout(text: &str) -> Result<Duration, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s > 0.0 && s <= 1e9 => Ok(Duration::from_secs_f64(s)),
+        _ => Err(format!("`{text}` is not a number of seconds in (0, 1e9]")),
+    }
+}
+
+fn read_file(path: &Path) -> Result<Vec<u8>, String> {
+    std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
+}
+
+/// `conformance judge`: prints each rejected answer and a summary; `Ok(true)`
+/// when every answer is accepted.
+fn judge(
+    file: &Path,
+    rays_path: &Path,
+    hits: Option<PathBuf>,
+    exec: Option<String>,
+    timeout: Duration,
+) -> Result<bool, String> {
+    let bytes = read_file(file)?;
+    let dag = dagfmt::Dag::open(&bytes).map_err(|e| format!("{}: {e}", file.display()))?;
+    let judge = Judge::new(&dag).map_err(|e| format!("{}: {e}", file.display()))?;
+    let rays = batch::parse_rays(&read_file(rays_path)?)
+        .map_err(|e| format!("{}: {e}", rays_path.display()))?;
+    judge
+        .check_levels(&rays)
+        .map_err(|e| format!("{}: {e}", rays_path.display()))?;
+    let (hits_bytes, hits_name) = match (hits, exec) {
+        (Some(path), _) => (read_file(&path)?, path.display().to_string()),
+        (None, Some(command)) => {
+            let temp = tempfile::tempdir()
+                .map_err(|e| format!("cannot make a temporary directory: {e}"))?;
+            let hits_path = temp.path().join("hits");
+            let command = suite::substitute(
+                &command,
+                &[("dag", file), ("rays", rays_path), ("hits", &hits_path)],
+            );
+            let output = suite::run_with_timeout(&command, timeout)
+                .map_err(|e| format!("the tracer command: {e}"))?;
+            if !output.status.success() {
+                let stderr = String::from_utf8_lossy(&output.stderr);
+                return Err(format!(
+                    "the tracer command failed ({}): {}",
+                    output.status,
+                    stderr.lines().last().unwrap_or("")
+                ));
+            }
+            let bytes = std::fs::read(&hits_path)
+                .map_err(|e| format!("the tracer command wrote no hits file: {e}"))?;
+            (bytes, "the tracer's hits".to_string())
+        }
+        (None, None) => return Err("give --hits or --exec".into()),
+    };
+    let answers = batch::parse_hits(&hits_bytes).map_err(|e| format!("{hits_name}: {e}"))?;
+    if answers.len() != rays.len() {
+        return Err(format!(
+            "{hits_name}: {} answers for {} rays",
+            answers.len(),
+            rays.len()
+        ));
+    }
+    let verdicts = judge.judge_batch(&rays, &answers);
+    let mut rejected = 0usize;
+    let mut out = std::io::stdout().lock();
+    for (i, verdict) in verdicts.iter().enumerate() {
+        if let Some(rejection) = verdict {
+            rejected += 1;
+            use std::io::Write as _;
+            // A closed standard output ends the listing, not the judgement.
+            let _ = writeln!(
+                out,
+                "ray {i}: {} | answer: {} | {rejection}",
+                bless::format_ray(&rays[i]),
+                expect::format_answer(&answers[i])
+            );
+        }
+    }
+    drop(out);
+    println!(
+        "{} rays judged: {} accepted, {rejected} rejected",
+        rays.len(),
+        rays.len() - rejected
+    );
+    Ok(rejected == 0)
+}
+
 fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(true) => ExitCode::SUCCESS,
@@ -116,6 +249,7 @@ fn run(cli: Cli) -> Result<bool, String> {
             tracer,
             exec,
             binary_rays,
+            timeout,
             short_stack,
             cases,
             filter,
@@ -125,6 +259,7 @@ fn run(cli: Cli) -> Result<bool, String> {
                 (Some(command), _) => Box::new(ExecTracer {
                     command,
                     binary_rays,
+                    timeout,
                 }),
                 (None, TracerKind::Cpu) => Box::new(suite::CpuTracer),
                 (None, TracerKind::Gpu) => {
@@ -142,21 +277,35 @@ fn run(cli: Cli) -> Result<bool, String> {
         }
         Cmd::Validate {
             exec,
+            lenient,
+            timeout,
             cases,
             filter,
         } => {
             let root = cases.unwrap_or_else(suite::default_cases_dir);
             let backend: Box<dyn ValidateBackend> = match exec {
-                Some(command) => Box::new(ExecValidator { command }),
+                Some(command) => Box::new(ExecValidator { command, timeout }),
                 None => Box::new(suite::InProcessValidator),
+            };
+            let strictness = if lenient {
+                suite::Strictness::Lenient
+            } else {
+                suite::Strictness::Strict
             };
             let cases = suite::validate_cases(&root, filter.as_deref())?;
             let outcomes: Vec<_> = cases
                 .iter()
-                .map(|c| suite::run_validate_case(c, backend.as_ref()))
+                .map(|c| suite::run_validate_case(c, backend.as_ref(), strictness))
                 .collect();
             Ok(suite::report(&outcomes, "files"))
         }
+        Cmd::Judge {
+            file,
+            rays,
+            hits,
+            exec,
+            timeout,
+        } => judge(&file, &rays, hits, exec, timeout),
         Cmd::Bless { output } => {
             let root = output.unwrap_or_else(suite::default_cases_dir);
             let files = bless::generate()?;

@@ -142,22 +142,37 @@ pub struct LevelCells {
     pub first_index: Vec<u64>,
 }
 
-impl LevelCells {
-    /// Position of the cell with these coordinates, if occupied.
-    pub fn find(&self, cell: [u32; 3]) -> Option<usize> {
-        self.codes
-            .binary_search(&morton::encode(cell[0], cell[1], cell[2]))
-            .ok()
-    }
-
+/// Occupancy of the cells of one level, as the tolerance rules need it: the
+/// brute-force oracle answers from its decoded list, the judge
+/// ([`crate::judge`]) from point queries into the DAG.
+pub(crate) trait Occupancy {
+    /// The level whose cells are queried.
+    fn level(&self) -> u8;
     /// Whether the cell at signed coordinates `cell` is occupied (outside the
     /// volume nothing is).
+    fn occupied(&self, cell: [i64; 3]) -> bool;
+}
+
+impl Occupancy for LevelCells {
+    fn level(&self) -> u8 {
+        self.level
+    }
+
     fn occupied(&self, cell: [i64; 3]) -> bool {
         let n = 1i64 << self.level;
         if cell.iter().any(|&c| c < 0 || c >= n) {
             return false;
         }
         self.find(cell.map(|c| c as u32)).is_some()
+    }
+}
+
+impl LevelCells {
+    /// Position of the cell with these coordinates, if occupied.
+    pub fn find(&self, cell: [u32; 3]) -> Option<usize> {
+        self.codes
+            .binary_search(&morton::encode(cell[0], cell[1], cell[2]))
+            .ok()
     }
 
     /// Builds the list from voxel coordinates given in Morton order (used to
@@ -280,7 +295,7 @@ impl Counter<'_, '_> {
 /// Slab interval of one axis of the box `[lo, hi]` for a ray coordinate
 /// `o + t d`: `None` when the ray misses the slab.
 #[inline]
-fn slab(o: f64, d: f64, lo: f64, hi: f64) -> Option<(f64, f64)> {
+pub(crate) fn slab(o: f64, d: f64, lo: f64, hi: f64) -> Option<(f64, f64)> {
     if d == 0.0 {
         return (lo <= o && o <= hi).then_some((f64::NEG_INFINITY, f64::INFINITY));
     }
@@ -291,19 +306,69 @@ fn slab(o: f64, d: f64, lo: f64, hi: f64) -> Option<(f64, f64)> {
 
 /// A ray in grid space, with its tolerances.
 #[derive(Clone, Copy, Debug)]
-struct GridRay {
-    o: [f64; 3],
-    d: [f64; 3],
-    tmin: f64,
-    tmax: f64,
+pub(crate) struct GridRay {
+    pub(crate) o: [f64; 3],
+    /// Direction; all zero when the ray is a point query (spec/VDAG.md § 20.1:
+    /// every component below 2^-1022 in magnitude).
+    pub(crate) d: [f64; 3],
+    pub(crate) tmin: f64,
+    pub(crate) tmax: f64,
     /// Inflated position tolerance (grid units).
-    eps: f64,
+    pub(crate) eps: f64,
     /// Inflated `t` tolerance.
-    eps_t: f64,
+    pub(crate) eps_t: f64,
+}
+
+/// The frame of a file that rays are mapped into.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct GridFrame {
+    pub(crate) depth: u8,
+    pub(crate) root_min: [f64; 3],
+    pub(crate) root_size: f64,
+}
+
+impl GridFrame {
+    /// The grid-space form of `ray` with its (inflated) tolerances, or `None`
+    /// for the invalid rays of spec/VDAG.md § 20.4, which must miss: a NaN, an
+    /// infinite origin or direction component, or `tmin > tmax`.
+    pub(crate) fn grid_ray(&self, ray: &OracleRay) -> Option<GridRay> {
+        let bad_parameter = ray.tmin.is_nan() || ray.tmax.is_nan() || ray.tmin > ray.tmax;
+        if bad_parameter || !ray.origin.iter().chain(&ray.dir).all(|v| v.is_finite()) {
+            return None;
+        }
+        let scale = (1u64 << self.depth) as f64 / self.root_size;
+        let o = [0, 1, 2].map(|i| (f64::from(ray.origin[i]) - self.root_min[i]) * scale);
+        let mut d = [0, 1, 2].map(|i| f64::from(ray.dir[i]) * scale);
+        // § 20.1: a direction whose grid-space components all lie below the
+        // smallest normal binary64 number is zero (a point query).
+        if d.iter().all(|v| v.abs() < f64::MIN_POSITIVE) {
+            d = [0.0; 3];
+        }
+        let eps = position_tolerance(self.depth, o) * INFLATE;
+        let norm = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let eps_t = if norm > 0.0 {
+            eps / norm * INFLATE
+        } else {
+            0.0
+        };
+        Some(GridRay {
+            o,
+            d,
+            tmin: f64::from(ray.tmin),
+            tmax: f64::from(ray.tmax),
+            eps,
+            eps_t,
+        })
+    }
 }
 
 impl GridRay {
-    fn at(&self, t: f64) -> [f64; 3] {
+    /// Whether the ray is a point query (zero direction).
+    pub(crate) fn is_point(&self) -> bool {
+        self.d.iter().all(|&v| v == 0.0)
+    }
+
+    pub(crate) fn at(&self, t: f64) -> [f64; 3] {
         [0, 1, 2].map(|i| {
             if self.d[i] == 0.0 {
                 self.o[i]
@@ -377,28 +442,14 @@ impl Oracle {
         if !(1..=self.depth).contains(&level) {
             return Err(format!("level {level} is outside 1..={}", self.depth));
         }
-        // Invalid rays (spec/VDAG.md § 20.4) must miss.
-        let bad_parameter = ray.tmin.is_nan() || ray.tmax.is_nan() || ray.tmin > ray.tmax;
-        if bad_parameter || !ray.origin.iter().chain(&ray.dir).all(|v| v.is_finite()) {
-            return Ok(Expectation::miss(level));
-        }
-        let scale = (1u64 << self.depth) as f64 / self.root_size;
-        let o = [0, 1, 2].map(|i| (f64::from(ray.origin[i]) - self.root_min[i]) * scale);
-        let d = [0, 1, 2].map(|i| f64::from(ray.dir[i]) * scale);
-        let eps = position_tolerance(self.depth, o) * INFLATE;
-        let norm = d.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let eps_t = if norm > 0.0 {
-            eps / norm * INFLATE
-        } else {
-            0.0
+        let frame = GridFrame {
+            depth: self.depth,
+            root_min: self.root_min,
+            root_size: self.root_size,
         };
-        let gray = GridRay {
-            o,
-            d,
-            tmin: f64::from(ray.tmin),
-            tmax: f64::from(ray.tmax),
-            eps,
-            eps_t,
+        // Invalid rays (spec/VDAG.md § 20.4) must miss.
+        let Some(gray) = frame.grid_ray(ray) else {
+            return Ok(Expectation::miss(level));
         };
         let attribute_kind = self.attribute_kind;
         let depth = self.depth;
@@ -445,7 +496,7 @@ fn expect_in(cells: &LevelCells, depth: u8, kind: AttributeKind, ray: &GridRay) 
             .then(cells.codes[a.index].cmp(&cells.codes[b.index]))
     });
     // T-: the first robustly inside point of the segment.
-    let zero_dir = ray.d.iter().all(|&v| v == 0.0);
+    let zero_dir = ray.is_point();
     let mut first_robust = f64::INFINITY;
     for cand in &candidates {
         if cand.entry > first_robust {
@@ -504,14 +555,23 @@ fn expect_in(cells: &LevelCells, depth: u8, kind: AttributeKind, ray: &GridRay) 
     }
 }
 
-/// The smallest f32 that is not below `v`.
-fn f32_at_least(v: f64) -> f32 {
+/// The smallest f32 that is not below `v`; `-inf` when `v` lies below the
+/// finite f32 range (spec/VDAG.md § 20.8: a bound beyond the f32 range is
+/// reached by the f32 overflow, as IEEE rounding of such a `t` gives).
+pub(crate) fn f32_at_least(v: f64) -> f32 {
+    if v < -f64::from(f32::MAX) {
+        return f32::NEG_INFINITY;
+    }
     let f = v as f32;
     if f64::from(f) < v { f.next_up() } else { f }
 }
 
-/// The largest f32 that is not above `v`.
-fn f32_at_most(v: f64) -> f32 {
+/// The largest f32 that is not above `v`; `+inf` when `v` lies above the
+/// finite f32 range (see [`f32_at_least`]).
+pub(crate) fn f32_at_most(v: f64) -> f32 {
+    if v > f64::from(f32::MAX) {
+        return f32::INFINITY;
+    }
     let f = v as f32;
     if f64::from(f) > v { f.next_down() } else { f }
 }
@@ -520,8 +580,13 @@ fn f32_at_most(v: f64) -> f32 {
 /// whose open interior meets the open cube `(p - eps, p + eps)^3` is occupied
 /// (equivalently, the closed cube lies in the union of the occupied closed
 /// cells).
-fn robust(cells: &LevelCells, p: [f64; 3], eps: f64, s: f64) -> bool {
-    let n = (1i64 << cells.level) as f64;
+pub(crate) fn robust<O: Occupancy + ?Sized>(cells: &O, p: [f64; 3], eps: f64, s: f64) -> bool {
+    let n = (1i64 << cells.level()) as f64;
+    // A cube wider than the volume (an origin so far away that eps_g spans
+    // it) is never inside it.
+    if 2.0 * eps > n * s {
+        return false;
+    }
     let mut lo = [0i64; 3];
     let mut hi = [0i64; 3];
     for axis in 0..3 {
@@ -552,8 +617,8 @@ fn robust(cells: &LevelCells, p: [f64; 3], eps: f64, s: f64) -> bool {
 /// between two such crossings it is constant, so testing each crossing and the
 /// midpoint of each gap between crossings is exact (the set of robust points
 /// is closed, so a robust gap makes its start robust too).
-fn first_robust_in(
-    cells: &LevelCells,
+pub(crate) fn first_robust_in<O: Occupancy + ?Sized>(
+    cells: &O,
     ray: &GridRay,
     cell: [u32; 3],
     s: f64,
@@ -561,6 +626,14 @@ fn first_robust_in(
     exit: f64,
 ) -> Option<f64> {
     let eps = ray.eps;
+    let n = 1i64 << cells.level();
+    if 2.0 * eps > n as f64 * s {
+        // No cube of half size eps fits in the volume (see `robust`).
+        return None;
+    }
+    // Only planes k s +- eps with 0 <= k <= n can change robustness: beyond
+    // them the cube reaches out of the volume on both sides. (Clamping also
+    // bounds the loop for far origins, whose eps spans many cells.)
     let reach = (2.0 * eps / s).ceil() as i64 + 1;
     let mut stops = vec![entry];
     for (axis, &ca) in cell.iter().enumerate() {
@@ -568,7 +641,7 @@ fn first_robust_in(
             continue;
         }
         let c = i64::from(ca);
-        for k in c - reach..=c + 1 + reach {
+        for k in (c - reach).max(0)..=(c + 1 + reach).min(n) {
             for plane in [k as f64 * s - eps, k as f64 * s + eps] {
                 let t = (plane - ray.o[axis]) / ray.d[axis];
                 if entry < t && t < exit {
@@ -602,7 +675,7 @@ fn first_robust_in(
 /// enters) is accepted when that axis can be the last slab entered within the
 /// tolerance: its slab start for the shrunk cell is not before the latest slab
 /// start for the grown cell, nor before `tmin`.
-fn faces(ray: &GridRay, cell: [u32; 3], s: f64) -> u8 {
+pub(crate) fn faces(ray: &GridRay, cell: [u32; 3], s: f64) -> u8 {
     let eps = ray.eps;
     let start = |axis: usize, grow: f64| -> f64 {
         let d = ray.d[axis];

@@ -21,6 +21,10 @@ pub struct RayGroup {
     pub comment: String,
     /// The rays.
     pub rays: Vec<Ray>,
+    /// Where not empty, the text of each ray's line in the `.rays` file (one
+    /// per ray), for rays whose spelling matters (a decimal that rounds twice
+    /// through binary64, a level with leading zeros); it must parse to the ray.
+    pub literals: Vec<String>,
 }
 
 /// One tracer case.
@@ -37,6 +41,10 @@ pub struct TraceCase {
     pub voxels: Option<Vec<[u32; 3]>>,
     /// The rays, in groups.
     pub groups: Vec<RayGroup>,
+    /// Whether the batch as a whole must be rejected (a ray's level is deeper
+    /// than the file, spec/VDAG.md § 20.2): the `.expect` file then says
+    /// `reject-batch` instead of one line per ray.
+    pub reject_batch: bool,
 }
 
 /// A volume being described.
@@ -121,6 +129,7 @@ impl Volume {
             file: self.build(),
             voxels: Some(self.voxels.clone()),
             groups,
+            reject_batch: false,
         }
     }
 }
@@ -140,6 +149,7 @@ fn group(comment: &str, rays: Vec<Ray>) -> RayGroup {
     RayGroup {
         comment: comment.into(),
         rays,
+        literals: Vec::new(),
     }
 }
 
@@ -706,7 +716,117 @@ pub fn trace_cases() -> Vec<TraceCase> {
     cases.extend(mesh_cases());
     cases.push(saturated_case());
     cases.extend(relayout_cases());
+    cases.extend(empty_cases());
+    cases.extend(decided_cases());
     cases
+}
+
+/// Empty volumes (spec/VDAG.md § 7) of other depths than `empty-d4`: the
+/// smallest (the root level is the leaf level), a middle one and the deepest.
+fn empty_cases() -> Vec<TraceCase> {
+    [2u8, 9, 21]
+        .into_iter()
+        .map(|depth| {
+            hand_made(
+                &format!("empty-d{depth:02}"),
+                &format!("an empty depth-{depth} volume: every ray misses, at every level"),
+                Volume::new(depth, Vec::new()).root([-1.0, -1.0, -1.0], 2.0),
+                true,
+                true,
+            )
+        })
+        .collect()
+}
+
+/// Cases for the decisions of spec 1.1 (VDAG.md § 22.2): point queries with
+/// infinite `tmin`, directions that are zero in binary64, decimals that round
+/// twice through binary64, level fields with leading zeros, and a batch with
+/// a level deeper than the file.
+fn decided_cases() -> Vec<TraceCase> {
+    // Depth 3, voxels (1, 1, 1) and (2, 1, 1) in the root cube [0, 8]^3.
+    let vol = Volume::new(3, vec![[1, 1, 1], [2, 1, 1]]).root([0.0; 3], 8.0);
+    let point = |o: [f64; 3], tmin: f32, tmax: f32| seg(vol.ray(o, [0.0; 3]), tmin, tmax);
+    let inf = f32::INFINITY;
+    let infinite_tmin = group(
+        "zero direction with infinite tmin (§ 20.4): a hit reports t = tmin, inf or -inf, face 0; outside the voxels a miss",
+        vec![
+            point([1.5, 1.5, 1.5], -inf, inf),
+            point([1.5, 1.5, 1.5], inf, inf),
+            point([1.5, 1.5, 1.5], -inf, -inf),
+            point([2.0, 1.5, 1.5], -inf, 0.0),
+            point([4.5, 1.5, 1.5], -inf, inf),
+            lod(point([3.5, 1.5, 1.5], -inf, inf), 1),
+        ],
+    );
+    // Literal spellings (§ 21.1): the reader rounds each decimal once, to f32.
+    let midpoint_plus = "1.0000000596046447753906250000001";
+    let spelled = RayGroup {
+        comment: format!(
+            "spelling (§ 21.1): tmin {midpoint_plus} is just above the midpoint of 1 and the next f32, so t = 1.0000001 (through binary64 it would round twice, to 1); levels with leading zeros"
+        ),
+        rays: vec![
+            point([1.5, 1.5, 1.5], 1.0f32.next_up(), inf),
+            lod(vol.ray([-1.0, 1.5, 1.5], [1.0, 0.0, 0.0]), 3),
+            lod(vol.ray([-1.0, 1.5, 1.5], [1.0, 0.0, 0.0]), 1),
+        ],
+        literals: vec![
+            format!("1.5 1.5 1.5 0 0 0 {midpoint_plus} inf"),
+            "-1 1.5 1.5 1 0 0 0 inf 003".into(),
+            "-1 1.5 1.5 1 0 0 0 inf 01".into(),
+        ],
+    };
+    let decided = vol.case(
+        "decided-d3",
+        "two voxels, depth 3, root cube [0, 8]^3: the cases of the decisions of spec 1.1",
+        vec![infinite_tmin, spelled],
+    );
+    // A root cube of size 2^1000 centred on the origin: grid = (world +
+    // 2^999) * 2^-997, so every f32 origin lies at the grid centre (4, 4, 4),
+    // inside the 2^3 block of voxels around it, and a direction component of
+    // 2^-60 is 2^-1057 grid units, below the smallest normal binary64 number:
+    // zero (§ 20.1). A component of 1 is 2^-997: the ray moves.
+    let huge = 2f64.powi(1000);
+    let block: Vec<[u32; 3]> = (0..8u32)
+        .map(|c| [3 + (c & 1), 3 + ((c >> 1) & 1), 3 + (c >> 2)])
+        .collect();
+    let tiny_vol = Volume::new(3, block).root([-huge / 2.0; 3], huge);
+    let world = |d: [f32; 3], tmin: f32| Ray {
+        origin: [1.0; 3],
+        dir: d,
+        tmin,
+        tmax: inf,
+        level: None,
+    };
+    let tiny = 2f32.powi(-60);
+    let underflow = tiny_vol.case(
+        "underflow-d3",
+        "a root cube of size 2^1000 around the origin and the 2^3 voxels at its centre: directions whose grid-space components are below 2^-1022 are zero (§ 20.1)",
+        vec![group(
+            "from the centre: directions of 2^-60 (grid 2^-1057) are point queries, t = tmin, face 0; a direction of 1 (grid 2^-997) moves, entering through face 1 when tmin = -inf",
+            vec![
+                world([tiny, 0.0, 0.0], f32::NEG_INFINITY),
+                world([tiny, -tiny, 0.0], 0.0),
+                world([0.0, 0.0, -tiny], 5.0),
+                world([1.0, 0.0, 0.0], f32::NEG_INFINITY),
+                world([1.0, 0.0, 0.0], 0.0),
+            ],
+        )],
+    );
+    // A batch one of whose rays asks for level 4 of a depth-3 file.
+    let mut deep = vol.case(
+        "level-too-deep-d3",
+        "a batch whose third ray asks for level 4 of a depth-3 file: the whole batch is rejected (§ 20.2)",
+        vec![group(
+            "valid rays, then one at level 4: the tracer must fail and write no answers",
+            vec![
+                vol.ray([-1.0, 1.5, 1.5], [1.0, 0.0, 0.0]),
+                lod(vol.ray([-1.0, 1.5, 1.5], [1.0, 0.0, 0.0]), 2),
+                lod(vol.ray([-1.0, 1.5, 1.5], [1.0, 0.0, 0.0]), 4),
+            ],
+        )],
+    );
+    deep.reject_batch = true;
+    vec![decided, underflow, deep]
 }
 
 fn walls_case() -> TraceCase {
@@ -998,6 +1118,7 @@ fn saturated_case() -> TraceCase {
         file,
         voxels: None,
         groups: vec![group("rays from inside and from the far corner, at levels 2, 3 and 5", rays)],
+        reject_batch: false,
     }
 }
 
@@ -1030,6 +1151,7 @@ fn relayout_cases() -> Vec<TraceCase> {
             file: reversed.encode(),
             voxels: Some(vol.voxels.clone()),
             groups: groups.clone(),
+            reject_batch: false,
         },
         TraceCase {
             name: "undeduplicated-d5".into(),
@@ -1039,6 +1161,7 @@ fn relayout_cases() -> Vec<TraceCase> {
             file: undeduplicated.encode(),
             voxels: Some(vol.voxels.clone()),
             groups,
+            reject_batch: false,
         },
     ]
 }

@@ -1,7 +1,10 @@
 //! Running the committed cases against a tracer or a validator.
 
+use std::io::{Read, Seek, SeekFrom};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
 
 use dagfmt::batch::{self, Hit, Ray};
 use dagfmt::{Dag, ErrorCode};
@@ -31,8 +34,22 @@ pub struct ValidateCaseFile {
     pub path: PathBuf,
     /// `None`: must be accepted; else the code it must be rejected with.
     pub expected: Option<ErrorCode>,
+    /// The byte offset (spec/VDAG.md § 17.4) at which strict mode requires
+    /// the expected code to be reported.
+    pub offset: Option<u64>,
+    /// Other codes the defect also breaks, which a validator may report too.
+    pub also: Vec<ErrorCode>,
     /// What the case is.
     pub description: String,
+}
+
+/// Parses `0x1c8` or `456`.
+fn parse_offset(text: &str) -> Option<u64> {
+    match text.strip_prefix("0x").or_else(|| text.strip_prefix("0X")) {
+        Some(hex) => u64::from_str_radix(hex, 16).ok(),
+        None if text.bytes().all(|b| b.is_ascii_digit()) => text.parse().ok(),
+        None => None,
+    }
 }
 
 /// The default cases directory: the one committed next to this crate's sources.
@@ -91,29 +108,43 @@ pub fn validate_cases(root: &Path, filter: Option<&str>) -> Result<Vec<ValidateC
         if fields.is_empty() {
             continue;
         }
-        let [file, outcome] = fields[..] else {
-            return Err(format!(
-                "{}:{}: expected `FILE valid|CODE`",
-                index_path.display(),
-                number + 1
-            ));
+        let at = || format!("{}:{}", index_path.display(), number + 1);
+        let (file, outcome, others) = match fields[..] {
+            [file, outcome, ref others @ ..] => (file, outcome, others),
+            _ => {
+                return Err(format!(
+                    "{}: expected `FILE valid|CODE@OFFSET [CODE...]`",
+                    at()
+                ));
+            }
         };
-        let expected = match outcome {
-            "valid" => None,
-            code => Some(ErrorCode::parse(code).ok_or_else(|| {
-                format!(
-                    "{}:{}: unknown error code `{code}`",
-                    index_path.display(),
-                    number + 1
-                )
-            })?),
+        let code = |text: &str| {
+            ErrorCode::parse(text).ok_or_else(|| format!("{}: unknown error code `{text}`", at()))
         };
+        let (expected, offset) = match outcome {
+            "valid" if others.is_empty() => (None, None),
+            "valid" => return Err(format!("{}: a valid file lists codes", at())),
+            outcome => {
+                let (name, offset) = outcome
+                    .split_once('@')
+                    .ok_or_else(|| format!("{}: `{outcome}` is not CODE@OFFSET", at()))?;
+                let offset = parse_offset(offset)
+                    .ok_or_else(|| format!("{}: bad offset in `{outcome}`", at()))?;
+                (Some(code(name)?), Some(offset))
+            }
+        };
+        let also = others
+            .iter()
+            .map(|c| code(c))
+            .collect::<Result<Vec<_>, _>>()?;
         let name = format!("{VALIDATE_DIR}/{}", file.trim_end_matches(".vdag"));
         if matches(&name, filter) {
             cases.push(ValidateCaseFile {
                 name,
                 path: root.join(VALIDATE_DIR).join(file),
                 expected,
+                offset,
+                also,
                 description: comment.trim().to_string(),
             });
         }
@@ -125,6 +156,8 @@ pub fn validate_cases(root: &Path, filter: Option<&str>) -> Result<Vec<ValidateC
                 name,
                 path: case.dag,
                 expected: None,
+                offset: None,
+                also: Vec::new(),
                 description: "a tracer case's file".into(),
             });
         }
@@ -228,20 +261,112 @@ pub fn shell_quote(path: &Path) -> String {
     format!("'{}'", path.to_string_lossy().replace('\'', r"'\''"))
 }
 
-/// Runs `command` with `sh -c` after replacing each `{name}` by its quoted path.
-fn run_command(
-    template: &str,
-    substitutions: &[(&str, &Path)],
-) -> Result<std::process::Output, String> {
+/// The default time limit of one external command (`--timeout`).
+pub const DEFAULT_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// What an external command did.
+#[derive(Debug)]
+pub struct CommandOutput {
+    /// How it ended.
+    pub status: ExitStatus,
+    /// What it wrote to its standard output.
+    pub stdout: Vec<u8>,
+    /// What it wrote to its standard error.
+    pub stderr: Vec<u8>,
+}
+
+/// Replaces each `{name}` of `template` by its quoted path.
+pub fn substitute(template: &str, substitutions: &[(&str, &Path)]) -> String {
     let mut command = template.to_string();
     for (name, path) in substitutions {
         command = command.replace(&format!("{{{name}}}"), &shell_quote(path));
     }
-    Command::new("sh")
+    command
+}
+
+/// Runs `command` with `sh -c` in a process group of its own and waits at
+/// most `timeout` for it. When the time is up the whole group is killed (the
+/// shell and everything it started) and the error says so.
+///
+/// The output goes to unnamed temporary files rather than pipes, so that a
+/// background process that keeps a pipe open cannot keep the runner waiting.
+pub fn run_with_timeout(command: &str, timeout: Duration) -> Result<CommandOutput, String> {
+    let temp = |what: &str| {
+        tempfile::tempfile().map_err(|e| format!("cannot make a temporary file for {what}: {e}"))
+    };
+    let (mut stdout, mut stderr) = (temp("standard output")?, temp("standard error")?);
+    let out_handle = stdout
+        .try_clone()
+        .map_err(|e| format!("cannot share a temporary file: {e}"))?;
+    let err_handle = stderr
+        .try_clone()
+        .map_err(|e| format!("cannot share a temporary file: {e}"))?;
+    let mut child = Command::new("sh")
         .arg("-c")
-        .arg(&command)
-        .output()
-        .map_err(|e| format!("cannot run `sh -c {command}`: {e}"))
+        .arg(command)
+        .stdin(Stdio::null())
+        .stdout(out_handle)
+        .stderr(err_handle)
+        .process_group(0)
+        .spawn()
+        .map_err(|e| format!("cannot run `sh -c {command}`: {e}"))?;
+    let deadline = Instant::now() + timeout;
+    let mut pause = Duration::from_millis(1);
+    let status = loop {
+        match child.try_wait() {
+            Ok(Some(status)) => break status,
+            Ok(None) => {}
+            Err(e) => return Err(format!("cannot wait for `sh -c {command}`: {e}")),
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            kill_group(&mut child);
+            return Err(format!(
+                "timed out after {} s (the command's process group was killed)",
+                timeout.as_secs_f64()
+            ));
+        }
+        std::thread::sleep(pause.min(deadline - now));
+        pause = (pause * 2).min(Duration::from_millis(50));
+    };
+    // The shell is gone; whatever it left running in its group goes too, so
+    // that no stray process outlives its case.
+    kill_group(&mut child);
+    let read = |file: &mut std::fs::File| -> Vec<u8> {
+        let mut bytes = Vec::new();
+        let _ = file.seek(SeekFrom::Start(0));
+        let _ = file.read_to_end(&mut bytes);
+        bytes
+    };
+    Ok(CommandOutput {
+        status,
+        stdout: read(&mut stdout),
+        stderr: read(&mut stderr),
+    })
+}
+
+/// Kills the process group led by `child` and reaps the child.
+fn kill_group(child: &mut Child) {
+    if let Ok(pid) = libc::pid_t::try_from(child.id()) {
+        // SAFETY: kill(2) with a negative pid signals the process group
+        // `pid`, which `process_group(0)` made the child's own; it touches no
+        // memory of ours. A group that is already gone makes it fail with
+        // ESRCH, which is fine.
+        unsafe {
+            libc::kill(-pid, libc::SIGKILL);
+        }
+    }
+    let _ = child.wait();
+}
+
+/// Runs `command` with `sh -c` after replacing each `{name}` by its quoted
+/// path, with a time limit.
+fn run_command(
+    template: &str,
+    substitutions: &[(&str, &Path)],
+    timeout: Duration,
+) -> Result<CommandOutput, String> {
+    run_with_timeout(&substitute(template, substitutions), timeout)
 }
 
 fn tail(bytes: &[u8]) -> String {
@@ -257,6 +382,8 @@ pub struct ExecTracer {
     pub command: String,
     /// Hand the rays over in the binary format instead of the case's text file.
     pub binary_rays: bool,
+    /// How long one case may run.
+    pub timeout: Duration,
 }
 
 impl TraceBackend for ExecTracer {
@@ -281,6 +408,7 @@ impl TraceBackend for ExecTracer {
                 ("rays", &rays_path),
                 ("hits", &hits_path),
             ],
+            self.timeout,
         )?;
         if !output.status.success() {
             return Err(format!(
@@ -317,9 +445,24 @@ pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outc
         Ok(r) => r,
         Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.rays.display())),
     };
-    let expectations = match expect::parse_file(&expect_text) {
-        Ok(e) if e.len() == rays.len() => e,
-        Ok(e) => {
+    let expectations = match expect::parse_case(&expect_text) {
+        Ok(expect::CaseExpectation::RejectBatch) => {
+            // § 20.2: a level deeper than the file makes the batch an error.
+            let failures = match backend.trace(case, &file, &rays) {
+                Err(_) => Vec::new(),
+                Ok(_) => vec![
+                    "the batch has a ray whose level is deeper than the file: the tracer must reject the whole batch (fail, write no answers), but it answered"
+                        .to_string(),
+                ],
+            };
+            return Outcome {
+                name: case.name.clone(),
+                checked: rays.len(),
+                failures,
+            };
+        }
+        Ok(expect::CaseExpectation::Answers(e)) if e.len() == rays.len() => e,
+        Ok(expect::CaseExpectation::Answers(e)) => {
             return Outcome::error(
                 &case.name,
                 format!("{} expectations for {} rays", e.len(), rays.len()),
@@ -402,11 +545,13 @@ impl ValidateBackend for InProcessValidator {
 pub struct ExecValidator {
     /// Command template with `{file}`.
     pub command: String,
+    /// How long one file may take.
+    pub timeout: Duration,
 }
 
 impl ValidateBackend for ExecValidator {
     fn validate(&self, path: &Path, _file: &[u8]) -> Result<Verdict, String> {
-        let output = run_command(&self.command, &[("file", path)])?;
+        let output = run_command(&self.command, &[("file", path)], self.timeout)?;
         if output.status.success() {
             return Ok(Verdict::Valid);
         }
@@ -430,8 +575,103 @@ pub fn mentions_code(text: &str, code: &str) -> bool {
     })
 }
 
+/// How strictly a validator's report is checked (spec/CONFORMANCE.md § 6).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Strictness {
+    /// The expected code must be reported with its byte offset, and no code
+    /// outside the case's expected set may be reported.
+    Strict,
+    /// The expected code must be reported, anywhere.
+    Lenient,
+}
+
+/// One error a validator reported: the code and, when the line gives one, the
+/// byte offset (`byte N` or `byte 0xN` after the code on the same line).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ReportedError {
+    /// The code, such as `E041`.
+    pub code: String,
+    /// The byte offset, if the line names one.
+    pub offset: Option<u64>,
+}
+
+/// The errors in a validator's output: every `E` + three digits standing as a
+/// word of its own, with the first `byte OFFSET` that follows it on its line.
+pub fn reported_errors(text: &str) -> Vec<ReportedError> {
+    let mut found = Vec::new();
+    for line in text.lines() {
+        let words: Vec<&str> = line
+            .split(|c: char| !c.is_ascii_alphanumeric())
+            .filter(|w| !w.is_empty())
+            .collect();
+        for (i, word) in words.iter().enumerate() {
+            let is_code = word.len() == 4
+                && word.starts_with('E')
+                && word[1..].bytes().all(|b| b.is_ascii_digit());
+            if !is_code {
+                continue;
+            }
+            let offset = words[i + 1..]
+                .windows(2)
+                .take_while(|w| !(w[0].len() == 4 && w[0].starts_with('E')))
+                .find(|w| w[0] == "byte")
+                .and_then(|w| parse_offset(w[1]));
+            found.push(ReportedError {
+                code: (*word).to_string(),
+                offset,
+            });
+        }
+    }
+    found
+}
+
+/// Why a rejection's report does not satisfy strict mode, if it does not.
+fn strict_failure(case: &ValidateCaseFile, code: ErrorCode, text: &str) -> Option<String> {
+    let reported = reported_errors(text);
+    let show =
+        |o: Option<u64>| o.map_or_else(|| "no offset".to_string(), |o| format!("byte {o:#x}"));
+    let expected_offset = case.offset;
+    let mut problems = Vec::new();
+    let at_offset = reported.iter().any(|r| {
+        r.code == code.code() && (expected_offset.is_none() || r.offset == expected_offset)
+    });
+    if !at_offset {
+        let seen: Vec<String> = reported
+            .iter()
+            .filter(|r| r.code == code.code())
+            .map(|r| show(r.offset))
+            .collect();
+        problems.push(format!(
+            "{code} not reported at {} (reported at: {})",
+            show(expected_offset),
+            seen.join(", ")
+        ));
+    }
+    let mut foreign: Vec<&str> = reported
+        .iter()
+        .map(|r| r.code.as_str())
+        .filter(|c| *c != code.code() && !case.also.iter().any(|a| a.code() == *c))
+        .collect();
+    foreign.sort_unstable();
+    foreign.dedup();
+    if !foreign.is_empty() {
+        let mut allowed = vec![code.code()];
+        allowed.extend(case.also.iter().map(|c| c.code()));
+        problems.push(format!(
+            "reported {} outside the case's expected set ({})",
+            foreign.join(", "),
+            allowed.join(", ")
+        ));
+    }
+    (!problems.is_empty()).then(|| format!("strict: {}", problems.join("; ")))
+}
+
 /// Runs one validator case.
-pub fn run_validate_case(case: &ValidateCaseFile, backend: &dyn ValidateBackend) -> Outcome {
+pub fn run_validate_case(
+    case: &ValidateCaseFile,
+    backend: &dyn ValidateBackend,
+    strictness: Strictness,
+) -> Outcome {
     let file = match std::fs::read(&case.path) {
         Ok(f) => f,
         Err(e) => {
@@ -452,7 +692,12 @@ pub fn run_validate_case(case: &ValidateCaseFile, backend: &dyn ValidateBackend)
             tail(text.as_bytes())
         )),
         (Some(code), Verdict::Valid) => Some(format!("accepted, expected rejection with {code}")),
-        (Some(code), Verdict::Invalid(text)) if mentions_code(&text, code.code()) => None,
+        (Some(code), Verdict::Invalid(text)) if mentions_code(&text, code.code()) => {
+            match strictness {
+                Strictness::Lenient => None,
+                Strictness::Strict => strict_failure(case, *code, &text),
+            }
+        }
         (Some(code), Verdict::Invalid(text)) => Some(format!(
             "rejected without reporting {code}; reported: {}",
             tail(text.as_bytes())

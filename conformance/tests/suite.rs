@@ -133,7 +133,7 @@ fn validator_passes_every_case() {
     }
     let outcomes: Vec<_> = cases
         .iter()
-        .map(|c| suite::run_validate_case(c, &InProcessValidator))
+        .map(|c| suite::run_validate_case(c, &InProcessValidator, suite::Strictness::Strict))
         .collect();
     assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
 }
@@ -447,5 +447,175 @@ fn runner_drives_the_dagtool_validator() {
         output.status.success() && failed == 0 && passed > 50,
         "{}",
         stdout(&output)
+    );
+}
+
+/// Writes an executable shell script into `dir`.
+fn script(dir: &Path, name: &str, body: &str) -> String {
+    use std::os::unix::fs::PermissionsExt;
+    let path = dir.join(name);
+    std::fs::write(&path, format!("#!/bin/sh\n{body}\n")).expect("write script");
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+    suite::shell_quote(&path)
+}
+
+#[test]
+fn strict_mode_requires_offsets_and_no_foreign_codes() {
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let temp = tempfile::tempdir().expect("temp dir");
+    let reference = format!("'{}' validate-file", conformance_exe());
+    let malformed = suite::validate_cases(committed_cases(), Some("validate/E"))
+        .expect("cases")
+        .len();
+    // The reference validator passes strict mode (the default).
+    let output = run(&[
+        "validate",
+        "--cases",
+        &cases,
+        "--filter",
+        "validate/",
+        "--exec",
+        &format!("{reference} {{file}}"),
+    ]);
+    assert_eq!(summary(&output).1, 0, "{}", stdout(&output));
+    // A validator that reports one code too many (E062 at its offset), and one
+    // that reports the right codes at the wrong offsets.
+    let extra = script(
+        temp.path(),
+        "extra.sh",
+        &format!(
+            "{reference} \"$1\" && exit 0; echo 'E062 header-voxel-count at byte 0x48: invented'; exit 1"
+        ),
+    );
+    let shifted = script(
+        temp.path(),
+        "shifted.sh",
+        &format!("{reference} \"$1\" | sed 's/at byte 0x[0-9a-f]*/at byte 0x3/'; exit 1"),
+    );
+    for (validator, complaint, spared) in [
+        (&extra, "E062 outside the case's expected set", 1),
+        (&shifted, "not reported at byte", 0),
+    ] {
+        let command = format!("{validator} {{file}}");
+        let output = run(&[
+            "validate",
+            "--cases",
+            &cases,
+            "--filter",
+            "validate/E",
+            "--exec",
+            &command,
+        ]);
+        let (_, failed) = summary(&output);
+        assert_eq!(output.status.code(), Some(1));
+        assert_eq!(failed, malformed - spared, "{}", stdout(&output));
+        assert!(stdout(&output).contains(complaint), "{}", stdout(&output));
+        // --lenient only asks for the code.
+        let output = run(&[
+            "validate",
+            "--lenient",
+            "--cases",
+            &cases,
+            "--filter",
+            "validate/E",
+            "--exec",
+            &command,
+        ]);
+        assert_eq!(summary(&output), (malformed, 0), "{}", stdout(&output));
+    }
+}
+
+/// Whether process `pid` is still running, after giving a killed one a moment
+/// to go. A zombie counts as gone: in a container whose first process does not
+/// reap orphans, a killed orphan stays one.
+fn alive(pid: &str) -> bool {
+    let stat = format!("/proc/{}/stat", pid.trim());
+    for _ in 0..100 {
+        let running = std::fs::read_to_string(&stat)
+            .ok()
+            .and_then(|s| s.rsplit_once(')').map(|(_, rest)| rest.trim().to_string()))
+            .is_some_and(|rest| !rest.starts_with('Z') && !rest.starts_with('X'));
+        if !running {
+            return false;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    true
+}
+
+#[test]
+fn hanging_external_programs_time_out_and_their_group_is_killed() {
+    let cases = committed_cases().to_str().expect("UTF-8").to_string();
+    let temp = tempfile::tempdir().expect("temp dir");
+    let pid_file = temp.path().join("pid");
+    // The shell starts a sleeper in the background and waits for it: both
+    // belong to the command's process group and must be gone afterwards.
+    let hang = script(
+        temp.path(),
+        "hang.sh",
+        &format!("sleep 60 & echo $! > '{}'; wait", pid_file.display()),
+    );
+    let started = std::time::Instant::now();
+    let output = run(&[
+        "run",
+        "--cases",
+        &cases,
+        "--filter",
+        "full-d4",
+        "--timeout",
+        "0.5",
+        "--exec",
+        &format!("{hang} {{dag}} {{rays}} {{hits}}"),
+    ]);
+    assert!(
+        started.elapsed().as_secs() < 20,
+        "the runner waited {:?}",
+        started.elapsed()
+    );
+    assert_eq!(output.status.code(), Some(1));
+    let text = stdout(&output);
+    assert!(
+        text.contains("FAIL full-d4") && text.contains("timed out after 0.5 s"),
+        "{text}"
+    );
+    let pid = std::fs::read_to_string(&pid_file).expect("the script ran");
+    assert!(
+        !alive(&pid),
+        "the background sleeper {pid} outlived the timeout"
+    );
+    // The same for validators and for `judge --exec`.
+    let output = run(&[
+        "validate",
+        "--cases",
+        &cases,
+        "--filter",
+        "validate/E041",
+        "--timeout",
+        "0.5",
+        "--exec",
+        &format!("{hang} {{file}}"),
+    ]);
+    assert_eq!(summary(&output), (0, 1), "{}", stdout(&output));
+    assert!(stdout(&output).contains("timed out"), "{}", stdout(&output));
+    let case = committed_cases().join("trace");
+    let output = Command::new(conformance_exe())
+        .args([
+            "judge",
+            case.join("full-d4.vdag").to_str().expect("UTF-8"),
+            "--rays",
+            case.join("full-d4.rays").to_str().expect("UTF-8"),
+            "--timeout",
+            "0.5",
+            "--exec",
+            &format!("{hang} {{dag}} {{rays}} {{hits}}"),
+        ])
+        .output()
+        .expect("runs");
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("timed out after 0.5 s"));
+    let pid = std::fs::read_to_string(&pid_file).expect("the script ran");
+    assert!(
+        !alive(&pid),
+        "the background sleeper {pid} outlived the timeout"
     );
 }

@@ -189,12 +189,52 @@ impl<'a> TextLines<'a> {
 /// The fields of text line number `line` (its bytes without the `\n`):
 /// `None` for a blank or comment-only line.
 fn line_fields(line: u64, raw: &[u8]) -> Result<Option<Vec<&str>>, BatchError> {
+    // § 21.1: a UTF-8 byte-order mark at the very start is ignored.
+    let raw = if line == 1 {
+        raw.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(raw)
+    } else {
+        raw
+    };
+    // A CR that ends the line belongs to its CR LF line end.
+    let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
+    // Fields are separated by spaces and tabs only; any other control
+    // character is an error, named, rather than a field that fails to
+    // parse somewhere else (a file with CR-only line ends would
+    // otherwise read as one long header line).
+    if let Some(&byte) = raw.iter().find(|&&b| (b < 0x20 && b != b'\t') || b == 0x7f) {
+        let message = if byte == b'\r' {
+            "a CR that does not end a CR LF line end: lines must end with LF or CR LF, \
+             not CR alone"
+                .to_string()
+        } else {
+            format!(
+                "control character {} is not allowed (fields are separated by spaces and tabs)",
+                control_name(byte)
+            )
+        };
+        return Err(text_error(line, message));
+    }
     let text = std::str::from_utf8(raw).map_err(|_| text_error(line, "not UTF-8 text"))?;
     let content = text.split('#').next().unwrap_or("");
     // No record has more than 9 fields: keep at most 10 (enough to
     // say "too many"), so a line of a million fields costs no memory.
-    let fields: Vec<&str> = content.split_ascii_whitespace().take(MAX_FIELDS).collect();
+    let fields: Vec<&str> = content
+        .split([' ', '\t'])
+        .filter(|f| !f.is_empty())
+        .take(MAX_FIELDS)
+        .collect();
     Ok((!fields.is_empty()).then_some(fields))
+}
+
+/// Names a control character for messages.
+fn control_name(byte: u8) -> String {
+    const NAMES: [&str; 32] = [
+        "NUL", "SOH", "STX", "ETX", "EOT", "ENQ", "ACK", "BEL", "BS", "HT", "LF", "VT", "FF", "CR",
+        "SO", "SI", "DLE", "DC1", "DC2", "DC3", "DC4", "NAK", "SYN", "ETB", "CAN", "EM", "SUB",
+        "ESC", "FS", "GS", "RS", "US",
+    ];
+    let name = NAMES.get(usize::from(byte)).copied().unwrap_or("DEL");
+    format!("U+{byte:04X} ({name})")
 }
 
 impl<'a> Iterator for TextLines<'a> {
@@ -269,15 +309,38 @@ fn header_fields(
 }
 
 fn parse_f32(line: u64, name: &str, field: &str) -> Result<f32, BatchError> {
-    field
-        .parse::<f32>()
-        .map_err(|_| text_error(line, format!("{name}: `{field}` is not a number")))
+    // Rust rounds the decimal straight to the nearest f32, as § 21.1 requires
+    // (never through f64, which could round twice).
+    field.parse::<f32>().map_err(|_| {
+        let hint = if field.is_ascii() {
+            ""
+        } else {
+            " (it holds non-ASCII characters: only ASCII spaces and tabs separate fields)"
+        };
+        text_error(line, format!("{name}: `{field}` is not a number{hint}"))
+    })
 }
 
+/// An unsigned decimal integer: ASCII digits only (§ 21.1: no sign; leading
+/// zeros are allowed).
 fn parse_int<T: std::str::FromStr>(line: u64, name: &str, field: &str) -> Result<T, BatchError> {
-    field
-        .parse::<T>()
-        .map_err(|_| text_error(line, format!("{name}: `{field}` is not a valid integer")))
+    let digits = !field.is_empty() && field.bytes().all(|b| b.is_ascii_digit());
+    let value = if digits {
+        field.parse::<T>().ok()
+    } else {
+        None
+    };
+    value.ok_or_else(|| {
+        let why = if field.starts_with(['+', '-']) {
+            " (integers carry no sign)"
+        } else {
+            ""
+        };
+        text_error(
+            line,
+            format!("{name}: `{field}` is not a valid integer{why}"),
+        )
+    })
 }
 
 fn check_level(level: u32) -> Result<u8, String> {
@@ -1001,6 +1064,73 @@ mod tests {
         assert_eq!(format_f32(1e30), "1e30");
         assert_eq!(format_f32(0.5), "0.5");
         assert_eq!(format_f32(f32::INFINITY), "inf");
+    }
+
+    #[test]
+    fn plain_form_wins_a_tie_with_the_exponent_form() {
+        // § 21.2: `0.01` and `1e-2` are both four characters: the plain one.
+        assert_eq!(format_f32(0.01), "0.01");
+        assert_eq!(format_f32(0.001), "1e-3");
+        assert_eq!(format_f32(0.0001), "1e-4");
+        assert_eq!(format_f32(100.0), "100", "`100` and `1e2`: a tie");
+        assert_eq!(format_f32(1000.0), "1e3");
+    }
+
+    #[test]
+    fn decimals_round_once_to_f32() {
+        // Just above the midpoint between 1 and the next f32: through f64 it
+        // would round to the midpoint, then (ties to even) to 1.
+        let text = b"vdag-rays 1\n0 0 0 0 0 0 1.0000000596046447753906250000001 inf\n";
+        let rays = parse_rays(text).unwrap();
+        assert_eq!(rays[0].tmin, 1.0f32.next_up());
+        let via_f64 = "1.0000000596046447753906250000001".parse::<f64>().unwrap() as f32;
+        assert_eq!(via_f64, 1.0, "the example does round twice through f64");
+    }
+
+    #[test]
+    fn lexical_decisions_of_section_21_1() {
+        let ok = |text: &[u8]| parse_rays(text).unwrap_or_else(|e| panic!("{e}"));
+        let err = |text: &[u8]| parse_rays(text).unwrap_err().to_string();
+        // A byte-order mark at the start, tabs, CR LF: fine.
+        let rays = ok(b"\xEF\xBB\xBFvdag-rays 1\r\n0\t0 0 1 0 0 0 inf 003\r\n");
+        assert_eq!(rays[0].level, Some(3), "leading zeros are allowed");
+        // CR alone ends nothing: an error naming line 1, not a version.
+        let e = err(b"vdag-rays 1\r1 -10 -3.5 0 1 0 0 inf\r");
+        assert!(
+            e.starts_with("line 1: a CR that does not end") && e.contains("CR alone"),
+            "{e}"
+        );
+        // Other control characters, whatever they are, are named.
+        for (byte, name) in [
+            (0x0b, "VT"),
+            (0x0c, "FF"),
+            (0x1c, "FS"),
+            (0x1f, "US"),
+            (0x7f, "DEL"),
+        ] {
+            let mut text = b"vdag-rays 1\n0 0 0 1 0 0 0 inf\n0 0".to_vec();
+            text.push(byte);
+            text.extend_from_slice(b"0 1 0 0 0 inf\n");
+            let e = err(&text);
+            assert!(
+                e.starts_with("line 3: control character") && e.contains(name),
+                "{e}"
+            );
+        }
+        // NBSP is not whitespace: the field does not parse, and the message says why.
+        let e = err("vdag-rays 1\n0\u{a0}0 0 0 1 0 0 0 inf\n".as_bytes());
+        assert!(e.contains("non-ASCII"), "{e}");
+        // A sign on an integer field.
+        for level in ["+3", "-3"] {
+            let e = err(format!("vdag-rays 1\n0 0 0 1 0 0 0 inf {level}\n").as_bytes());
+            assert!(e.contains("carry no sign"), "{e}");
+        }
+        let e = parse_hits(b"vdag-hits 1\nhit 1 +1 0 0 3 1 0\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("x: `+1`"), "{e}");
+        // A BOM anywhere else is not whitespace.
+        assert!(parse_rays("vdag-rays 1\n\u{feff}0 0 0 1 0 0 0 inf\n".as_bytes()).is_err());
     }
 
     #[test]

@@ -612,6 +612,39 @@ fn convert_voxels(
     Ok(summary)
 }
 
+/// Writes the empty volume of `depth` for a mesh without triangles: no
+/// bounding box to fit, so the root cube is the unit cube at the origin.
+fn convert_empty_mesh(
+    opts: &ConvertOptions,
+    depth: u8,
+    triangles: usize,
+    scratch: &Scratch,
+) -> Result<ConvertSummary, ConvertError> {
+    let mut summary = ConvertSummary {
+        input: format!("{}: {triangles} triangles", opts.input.display()),
+        fill: "none: the mesh has no triangles".into(),
+        depth,
+        root_min: [0.0; 3],
+        root_size: 1.0,
+        ..Default::default()
+    };
+    summary.warnings.push(
+        "the mesh has no triangles: the file holds the empty volume (root cube [0, 1]^3)".into(),
+    );
+    let settings = spill_settings(opts, depth, 0)?;
+    let sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let dag = sink.finish(|| 0, &|_| {})?;
+    let header = FileHeader {
+        depth,
+        attributes: AttributeKind::VoxelCount,
+        root_min: summary.root_min,
+        root_size: summary.root_size,
+        voxel_count: 0,
+    };
+    write_output(opts, &dag, None, header, &mut summary)?;
+    Ok(summary)
+}
+
 /// The colours of a chunk's voxels (RGBA8, in the order of its tags) when the
 /// mesh has textures: each tagged voxel's colour at its centre
 /// ([`Mesh::voxel_color`]), white for the voxels of the solid fill.
@@ -680,6 +713,11 @@ fn convert_mesh(
     let mut mesh = Mesh::load_obj(&opts.input)?;
     if opts.colors {
         mesh.load_textures(opts.input.parent().unwrap_or(Path::new("")));
+    }
+    if mesh.triangles.is_empty() {
+        // An empty volume (spec/VDAG.md § 7), not an error: a tile of a larger
+        // scene is often empty.
+        return convert_empty_mesh(opts, depth, mesh.triangles.len(), scratch);
     }
     let check = mesh.check()?;
     let mapping = GridMapping::fit(check.min, check.max, depth)?;

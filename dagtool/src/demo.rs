@@ -205,11 +205,9 @@ pub fn run(opts: &DemoOptions) -> Result<bool, ConvertError> {
         }
     }
     let validate_cases = suite::validate_cases(&root, None).map_err(ConvertError::Usage)?;
-    outcomes.extend(
-        validate_cases
-            .iter()
-            .map(|c| suite::run_validate_case(c, &suite::InProcessValidator)),
-    );
+    outcomes.extend(validate_cases.iter().map(|c| {
+        suite::run_validate_case(c, &suite::InProcessValidator, suite::Strictness::Strict)
+    }));
     Ok(suite::report(&outcomes, "rays and files"))
 }
 

@@ -155,11 +155,8 @@ pub fn read_text_from(
         max = max.max(c[0]).max(c[1]).max(c[2]);
         codes.push(dagfmt::morton::encode(c[0], c[1], c[2]));
     }
-    if codes.is_empty() {
-        return Err(ConvertError::Input(format!(
-            "{name}: the voxel list holds no voxels"
-        )));
-    }
+    // An empty list is an empty volume (spec/VDAG.md § 7), not an error: a
+    // tile of a larger scene is often empty.
     let records = codes.len() as u64;
     Ok(finish(
         codes,
@@ -225,11 +222,6 @@ pub fn read_binary_from(
     if expected != Some(len) {
         return Err(ConvertError::Input(format!(
             "{name}: header declares {count} voxels but the file has {len} bytes (expected 20 + 12 x count)"
-        )));
-    }
-    if count == 0 {
-        return Err(ConvertError::Input(format!(
-            "{name}: the voxel list holds no voxels"
         )));
     }
     let limit = 1u64 << file_depth;

@@ -407,9 +407,9 @@ fn every_reading_command_fails_cleanly_on_every_bad_input() {
         Says::Error("already a zstd transport file"),
         &inputs.valid_zst,
     ));
-    // convert: an empty mesh, a mesh with NaN vertices, a .vdag given as input.
+    // convert: a mesh with NaN vertices, a .vdag given as input. (An empty
+    // mesh is the empty volume: voxel_lists::empty_inputs_make_the_empty_volume.)
     for (what, path, format, needle) in [
-        ("empty OBJ", &inputs.empty, "obj", "no triangles"),
         ("NaN vertices", &inputs.nan_obj, "obj", "non-finite"),
         ("a .vdag as a mesh", &inputs.valid, "obj", "cannot read OBJ"),
     ] {

@@ -121,7 +121,6 @@ fn bad_lists() {
             vec!["--depth", "5"],
             "outside the volume",
         ),
-        ("e.txt", b"# only comments\n".to_vec(), vec![], "no voxels"),
         (
             "f.bin",
             [
@@ -214,4 +213,67 @@ fn bad_lists() {
         "--solid",
     ]);
     assert_eq!(o.status.code(), Some(2));
+}
+
+/// An empty voxel list (text or binary) and a mesh without triangles are an
+/// empty volume, not an error (spec/VDAG.md § 7): a tile of a larger scene is
+/// often empty. The files validate, hold no voxel, and every ray misses them.
+#[test]
+fn empty_inputs_make_the_empty_volume() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let binary_empty = [
+        &b"VVOX"[..],
+        &1u32.to_le_bytes(),
+        &7u32.to_le_bytes(),
+        &0u64.to_le_bytes(),
+    ]
+    .concat();
+    let inputs: Vec<(&str, Vec<u8>, Vec<&str>, u8)> = vec![
+        ("comments.txt", b"# only comments\n".to_vec(), vec![], 2),
+        ("blank.txt", Vec::new(), vec!["--depth", "12"], 12),
+        ("empty.bin", binary_empty, vec![], 7),
+        (
+            "nothing.obj",
+            b"# nothing here\n".to_vec(),
+            vec!["--depth", "5"],
+            5,
+        ),
+        (
+            "points.obj",
+            b"v 0 0 0\nv 1 0 0\n".to_vec(),
+            vec!["--depth", "2"],
+            2,
+        ),
+    ];
+    for (name, bytes, extra, depth) in inputs {
+        let input = d.join(name);
+        std::fs::write(&input, bytes).unwrap();
+        let out = d.join(format!("{name}.vdag"));
+        let mut args = vec![
+            "convert",
+            input.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        run_ok(&args);
+        let file = std::fs::read(&out).unwrap();
+        assert!(dagfmt::validate::validate(&file).is_empty(), "{name}");
+        let dag = dagfmt::Dag::open(&file).unwrap();
+        assert!(dag.is_empty(), "{name}");
+        assert_eq!(dag.header().depth, depth, "{name}");
+        assert_eq!(dag.header().voxel_count, 0, "{name}");
+        let ray = dagfmt::batch::Ray::new([-1.0, 0.5, 0.5], [1.0, 0.0, 0.0]);
+        let hits = dagtrace::Tracer::new(&dag)
+            .unwrap()
+            .trace_batch(&[ray])
+            .unwrap();
+        assert!(!hits[0].hit, "{name}");
+    }
+    // The empty mesh at depth 2 is the smallest valid file of spec/VDAG.md § 15,
+    // byte for byte in its header checksum.
+    let smallest = std::fs::read(d.join("points.obj.vdag")).unwrap();
+    assert_eq!(smallest.len(), 168);
+    assert_eq!(smallest[124..128], 0x48EE_91C3u32.to_le_bytes());
 }

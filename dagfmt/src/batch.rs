@@ -211,6 +211,10 @@ impl<'a> Iterator for TextLines<'a> {
             };
             // A CR that ends the line belongs to its CR LF line end.
             let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
+            let text = match std::str::from_utf8(raw) {
+                Ok(t) => t,
+                Err(_) => return Some(Err(text_error(line, "not UTF-8 text"))),
+            };
             // Fields are separated by spaces and tabs only; any other control
             // character is an error, named, rather than a field that fails to
             // parse somewhere else (a file with CR-only line ends would
@@ -228,10 +232,6 @@ impl<'a> Iterator for TextLines<'a> {
                 };
                 return Some(Err(text_error(line, message)));
             }
-            let text = match std::str::from_utf8(raw) {
-                Ok(t) => t,
-                Err(_) => return Some(Err(text_error(line, "not UTF-8 text"))),
-            };
             let content = text.split('#').next().unwrap_or("");
             // No record has more than 9 fields: keep at most 10 (enough to
             // say "too many"), so a line of a million fields costs no memory.

@@ -197,6 +197,7 @@ fn line_fields(line: u64, raw: &[u8]) -> Result<Option<Vec<&str>>, BatchError> {
     };
     // A CR that ends the line belongs to its CR LF line end.
     let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
+    let text = std::str::from_utf8(raw).map_err(|_| text_error(line, "not UTF-8 text"))?;
     // Fields are separated by spaces and tabs only; any other control
     // character is an error, named, rather than a field that fails to
     // parse somewhere else (a file with CR-only line ends would
@@ -214,7 +215,6 @@ fn line_fields(line: u64, raw: &[u8]) -> Result<Option<Vec<&str>>, BatchError> {
         };
         return Err(text_error(line, message));
     }
-    let text = std::str::from_utf8(raw).map_err(|_| text_error(line, "not UTF-8 text"))?;
     let content = text.split('#').next().unwrap_or("");
     // No record has more than 9 fields: keep at most 10 (enough to
     // say "too many"), so a line of a million fields costs no memory.

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dagtool::ConvertError;
 use dagtool::cmd;
-use dagtool::convert::{self, ConvertOptions, InputFormat};
+use dagtool::convert::{self, Bounds, ConvertOptions, InputFormat};
 use dagtool::output::{StdoutReport, print_stdout};
 use dagtool::sysinfo::parse_size;
 
@@ -155,7 +155,8 @@ enum Command {
     /// holds, 1 some criterion fails, 2 usage or I/O error.
     #[command(after_long_help = dagtool::verify::HELP)]
     Verify {
-        /// The source mesh (OBJ), in the coordinates it was converted from.
+        /// The source mesh (OBJ, glTF, PLY, STL) or point cloud (PLY, LAS,
+        /// LAZ), in the coordinates it was converted from.
         mesh: PathBuf,
         /// The .vdag (or .vdag.zst) file converted from it.
         file: PathBuf,
@@ -169,6 +170,9 @@ enum Command {
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Point clouds: the --point-radius the cloud was converted with.
+        #[arg(long, value_name = "R", default_value_t = 0.0)]
+        point_radius: f64,
     },
     /// The whole pipeline on a built-in scene: make a procedural mesh, convert,
     /// validate, render a PNG (GPU when an adapter exists, else CPU), and run
@@ -199,13 +203,28 @@ enum FormatArg {
     Auto,
     /// Wavefront OBJ.
     Obj,
+    /// glTF 2.0, JSON (.gltf).
+    Gltf,
+    /// glTF 2.0, binary (.glb).
+    Glb,
+    /// PLY mesh or point cloud.
+    Ply,
+    /// STL mesh, ASCII or binary.
+    Stl,
+    /// LAS or LAZ point cloud.
+    Las,
+    /// MagicaVoxel .vox.
+    Vox,
+    /// binvox voxel grid.
+    Binvox,
     /// Text or binary voxel list.
     Voxels,
 }
 
 #[derive(Args, Debug)]
 struct ConvertArgs {
-    /// Input: .obj mesh, or a text/binary voxel list.
+    /// Input: a mesh (.obj .gltf .glb .ply .stl), a point cloud (.ply .las
+    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list.
     input: PathBuf,
     /// Output .vdag file.
     #[arg(short, long)]
@@ -225,6 +244,15 @@ struct ConvertArgs {
     /// Input format.
     #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
     input_format: FormatArg,
+    /// The root cube, instead of one fitted to the input: its minimum corner
+    /// and edge in the input's units, so that tiles of one scene convert
+    /// onto one grid.
+    #[arg(long, value_name = "XMIN,YMIN,ZMIN,SIZE", allow_hyphen_values = true)]
+    bounds: Option<String>,
+    /// Point clouds: set every voxel within this distance (input units) of
+    /// a point, not only the voxel containing it.
+    #[arg(long, value_name = "R", default_value_t = 0.0)]
+    point_radius: f64,
     /// Memory to work in (e.g. 4G, 512M): beyond it the DAG is built in runs
     /// spilled to temporary files; default: 3/4 of physical memory.
     #[arg(long)]
@@ -257,6 +285,24 @@ struct ConvertArgs {
     quiet: bool,
 }
 
+fn format_of(arg: FormatArg) -> InputFormat {
+    let named = |name: &str| {
+        InputFormat::Named(dagtool::input::by_name(name).expect("every format is registered"))
+    };
+    match arg {
+        FormatArg::Auto => InputFormat::Auto,
+        FormatArg::Obj => named("obj"),
+        FormatArg::Gltf => named("gltf"),
+        FormatArg::Glb => named("glb"),
+        FormatArg::Ply => named("ply"),
+        FormatArg::Stl => named("stl"),
+        FormatArg::Las => named("las"),
+        FormatArg::Vox => named("vox"),
+        FormatArg::Binvox => named("binvox"),
+        FormatArg::Voxels => InputFormat::Voxels,
+    }
+}
+
 fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
     let depth = match (args.depth, args.resolution) {
         (Some(d), _) => Some(convert::check_depth(d)?),
@@ -272,11 +318,9 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
         None => None,
     };
     let mut opts = ConvertOptions::new(&args.input, &args.output, depth);
-    opts.format = match args.input_format {
-        FormatArg::Auto => InputFormat::Auto,
-        FormatArg::Obj => InputFormat::Obj,
-        FormatArg::Voxels => InputFormat::Voxels,
-    };
+    opts.format = format_of(args.input_format);
+    opts.bounds = args.bounds.as_deref().map(Bounds::parse).transpose()?;
+    opts.point_radius = args.point_radius;
     opts.solid = args.solid;
     opts.colors = args.colors;
     opts.force = args.force;
@@ -390,12 +434,14 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
             rays,
             seed,
             json,
+            point_radius,
         } => {
             let opts = dagtool::verify::VerifyOptions {
                 mesh,
                 dag: file,
                 rays,
                 seed,
+                point_radius,
             };
             // Like `validate`: 1 means "fails the criteria", so every error is 2.
             match dagtool::verify::run(&opts, json) {

@@ -93,7 +93,7 @@ pub fn load_bytes(bytes: &[u8], name: &str) -> Result<VoxelGrid, ConvertError> {
         )));
     }
     let total = nx as u128 * ny as u128 * nz as u128;
-    if rest.len() % 2 != 0 {
+    if !rest.len().is_multiple_of(2) {
         return Err(err("the binvox data has an odd number of bytes".into()));
     }
     let mut grid = VoxelGrid::default();

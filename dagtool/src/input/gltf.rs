@@ -343,8 +343,8 @@ struct Loader<'a> {
     /// The mesh's material index of each glTF material (the last entry: the
     /// default material), once made.
     material_ids: Vec<Option<u32>>,
-    /// Decoded textures by glTF texture index (`None` inside: not readable).
-    textures: Vec<(usize, Option<Texture>)>,
+    /// Decoded textures by glTF texture index.
+    textures: Vec<(usize, Texture)>,
     dir: Option<&'a Path>,
 }
 
@@ -561,7 +561,7 @@ impl Loader<'_> {
             .base_color_factor()
             .map(|c| (f64::from(c).clamp(0.0, 1.0) * 255.0).round() as u8);
         let texture = match pbr.base_color_texture() {
-            Some(info) => self.texture(&info.texture()),
+            Some(info) => Some(self.texture(&info.texture())?),
             None => None,
         };
         let id = self.mesh.colors.len() as u32;
@@ -579,11 +579,12 @@ impl Loader<'_> {
         Ok(id)
     }
 
-    /// A glTF texture decoded, with its sampler's wrap modes; a texture that
-    /// cannot be read adds a warning.
-    fn texture(&mut self, texture: &gltf::Texture<'_>) -> Option<Texture> {
+    /// A glTF texture decoded, with its sampler's wrap modes. Unlike an OBJ
+    /// material's, a texture that cannot be read is an error: glTF names its
+    /// files exactly, so a missing one is a broken file.
+    fn texture(&mut self, texture: &gltf::Texture<'_>) -> Result<Texture, ConvertError> {
         if let Some((_, t)) = self.textures.iter().find(|(i, _)| *i == texture.index()) {
-            return t.clone();
+            return Ok(t.clone());
         }
         let wrap = |m: gltf::texture::WrappingMode| match m {
             gltf::texture::WrappingMode::ClampToEdge => Wrap::ClampToEdge,
@@ -598,22 +599,19 @@ impl Loader<'_> {
             }
             gltf::image::Source::Uri { uri, .. } => external(uri, "image", self.name, self.dir),
         };
-        let decoded = bytes
-            .map_err(|e| e.to_string())
-            .and_then(|b| Texture::decode(&b));
-        let result = match decoded {
-            Ok(t) => Some(t.with_wrap([wrap(sampler.wrap_s()), wrap(sampler.wrap_t())])),
-            Err(e) => {
-                self.mesh.texture_warnings.push(format!(
-                    "texture {} (image {}) not loaded ({e})",
-                    texture.index(),
-                    image.index()
-                ));
-                None
-            }
-        };
+        let decoded = Texture::decode(&bytes?).map_err(|e| {
+            bad(
+                self.name,
+                format!(
+                    "cannot decode image {} of texture {}: {e}",
+                    image.index(),
+                    texture.index()
+                ),
+            )
+        })?;
+        let result = decoded.with_wrap([wrap(sampler.wrap_s()), wrap(sampler.wrap_t())]);
         self.textures.push((texture.index(), result.clone()));
-        result
+        Ok(result)
     }
 }
 

@@ -12,9 +12,42 @@ use dagtool::sysinfo::parse_size;
 
 const CONVERT_HELP: &str = "\
 INPUTS
+  Recognised by their first bytes, then their extension; --input-format names one.
+
   Wavefront OBJ (.obj): every model and group; polygons are triangulated as fans;
   points and lines become zero-area triangles. Materials (Kd, d, map_Kd) are read
   for --colors.
+
+  glTF 2.0 (.gltf with external or data: URI buffers, .glb): every mesh instance
+  of the default scene (all scenes without one), node transforms composed;
+  triangles, strips and fans; u8/u16/u32 or no indices; normalized, quantized
+  (KHR_mesh_quantization) and sparse accessors. --colors: baseColorFactor x
+  baseColorTexture (its texCoord set, sampler wrap modes, KHR_texture_transform)
+  x COLOR_0. Required extensions it does not support (Draco, meshopt, KTX2,
+  WebP, ...) are refused, by name; a texture that cannot be read is an error.
+
+  PLY (.ply, ASCII or binary, either byte order): with faces a mesh (polygons as
+  fans), without a point cloud. Vertex colours red green blue [alpha] (uchar,
+  ushort or float in [0, 1]) for --colors.
+
+  STL (.stl, ASCII or binary): triangles; no colours.
+
+  LAS 1.0-1.4 (.las) and LAZ (.laz), point formats 0-10: point clouds; RGB is
+  16-bit in LAS and becomes 8-bit as round(v / 257).
+
+  Point clouds (PLY, LAS, LAZ) are read in a stream and need --depth. Each point
+  sets the voxel containing it; --point-radius R sets every voxel within R of a
+  point. A voxel takes the colour of the first point (in file order) setting it.
+  The voxels go through an external sort within --memory-limit (sorted runs
+  spilled to temporary files), so clouds larger than memory convert.
+
+  MagicaVoxel (.vox): every model, placed by the scene graph (nTRN translations
+  and rotations, nGRP, nSHP; first frame); palette colours for --colors.
+  binvox (.binvox): the occupancy grid; its translate and scale are the root
+  cube. For both, one input voxel is one output voxel at the smallest depth that
+  holds the grid; --depth may only be larger (the same voxels in a larger cube
+  from the same corner). With --bounds each input voxel sets the output voxel
+  holding its centre.
 
   Text voxel list (.txt, .xyz, .voxels): one voxel per line, `x y z` as unsigned
   integers; `#` starts a comment; blank lines are ignored. Without --depth the
@@ -29,8 +62,11 @@ INPUTS
   The file is exactly 20 + 12 N bytes. Duplicates are allowed in both forms.
   Voxel lists map to the root cube min (0,0,0), size 2^D (world units = voxels).
 
-PLACEMENT (meshes)
-  The root cube is centred on the mesh's bounding box with edge
+PLACEMENT (meshes and point clouds)
+  --bounds xmin,ymin,zmin,size fixes the root cube, so that tiles of one scene
+  convert onto one grid: points outside it are skipped (with a warning), a mesh
+  that leaves it is refused (meshes are not clipped). Without it the root cube
+  is centred on the bounding box (of a point cloud: grown by the radius) with edge
   max_extent * 2^D / (2^D - 1): along the longest axis the mesh spans 2^D - 1
   voxels with half a voxel of padding on each side. It is stored in the header,
   so hit points map back to mesh coordinates. Vertices are snapped to 1/65536
@@ -93,7 +129,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Convert an OBJ mesh or a voxel list to a .vdag file.
+    /// Convert a mesh (OBJ, glTF, PLY, STL), a point cloud (PLY, LAS, LAZ),
+    /// a voxel grid (MagicaVoxel, binvox) or a voxel list to a .vdag file.
     #[command(after_long_help = CONVERT_HELP)]
     Convert(ConvertArgs),
     /// Check .vdag (or .vdag.zst) files against every rule of the format.
@@ -238,7 +275,7 @@ struct ConvertArgs {
     /// Fill the interior (see below for open meshes).
     #[arg(long)]
     solid: bool,
-    /// Store per-voxel colours from the OBJ materials (diffuse Kd and map_Kd textures).
+    /// Store per-voxel colours (materials, textures, vertex, point and palette colours).
     #[arg(long)]
     colors: bool,
     /// Input format.

@@ -24,7 +24,8 @@ pub struct Mesh {
     /// The diffuse texture file (`map_Kd`, as written) of each material
     /// (indexed like `colors`).
     pub texture_files: Vec<Option<String>>,
-    /// The decoded textures, once [`Mesh::load_textures`] has read them
+    /// The decoded textures, once the input has read them (OBJ:
+    /// [`crate::input::obj::load_textures`])
     /// (indexed like `colors`; `None` for a material without a readable one).
     pub textures: Vec<Option<Texture>>,
     /// Texture coordinates (`vt`) of the file.

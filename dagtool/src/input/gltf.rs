@@ -88,6 +88,24 @@ pub fn load_bytes(
     colors: bool,
 ) -> Result<Mesh, ConvertError> {
     let (json, blob): (Cow<'_, [u8]>, Option<Cow<'_, [u8]>>) = if bytes.starts_with(b"glTF") {
+        // The gltf crate subtracts the header's size from the declared
+        // length unchecked: a length below a header and one chunk header is
+        // refused first.
+        let declared = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize);
+        match declared {
+            Some(n) if (20..=bytes.len()).contains(&n) => {}
+            _ => {
+                return Err(bad(
+                    name,
+                    format!(
+                        "cannot read GLB: declared length {declared:?} is not between 20 and the file's {} bytes",
+                        bytes.len()
+                    ),
+                ));
+            }
+        }
         let glb = gltf::binary::Glb::from_slice(bytes)
             .map_err(|e| bad(name, format!("cannot read GLB: {e}")))?;
         (glb.json, glb.bin)
@@ -117,6 +135,23 @@ pub fn load_bytes(
     root.extensions_required.clear();
     // Its validation reads each POSITION accessor before checking that it
     // exists (gltf-json 1.4 panics there), so that is checked first.
+    // Image::source unwraps the MIME type of an image in a buffer view and
+    // the URI of any other.
+    for (i, image) in root.images.iter().enumerate() {
+        let complete = if image.buffer_view.is_some() {
+            image.mime_type.is_some()
+        } else {
+            image.uri.is_some()
+        };
+        if !complete {
+            return Err(bad(
+                name,
+                format!(
+                    "invalid glTF: image {i} has neither a URI nor a buffer view with a MIME type"
+                ),
+            ));
+        }
+    }
     for (m, mesh) in root.meshes.iter().enumerate() {
         for (p, primitive) in mesh.primitives.iter().enumerate() {
             for index in primitive.attributes.values() {

@@ -275,18 +275,28 @@ pub fn las_bytes(format: u8, laz: bool) -> Vec<u8> {
     writer.into_inner().unwrap().into_inner()
 }
 
+/// `DAGTOOL_FUZZ_SCALE=N` runs N times the mutations (a longer campaign
+/// without libFuzzer; the default keeps `cargo test` fast).
+fn scale() -> usize {
+    std::env::var("DAGTOOL_FUZZ_SCALE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+}
+
 #[test]
 fn input_format_harnesses_over_committed_and_mutated_files() {
-    let runs = run("ply_import", fuzzing::ply_import, Vec::new(), 300)
-        + run("stl_import", fuzzing::stl_import, Vec::new(), 300)
-        + run("gltf_import", fuzzing::gltf_import, Vec::new(), 300)
-        + run("vox_import", fuzzing::vox_import, Vec::new(), 300)
-        + run("binvox_import", fuzzing::binvox_import, Vec::new(), 300)
+    let n = 300 * scale();
+    let runs = run("ply_import", fuzzing::ply_import, Vec::new(), n)
+        + run("stl_import", fuzzing::stl_import, Vec::new(), n)
+        + run("gltf_import", fuzzing::gltf_import, Vec::new(), n)
+        + run("vox_import", fuzzing::vox_import, Vec::new(), n)
+        + run("binvox_import", fuzzing::binvox_import, Vec::new(), n)
         + run(
             "las_import",
             fuzzing::las_import,
             vec![las_bytes(0, false), las_bytes(7, true), las_bytes(3, false)],
-            150,
+            n / 2,
         );
     assert!(runs >= 5000, "{runs} runs");
 }

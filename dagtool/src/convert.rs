@@ -11,6 +11,7 @@ use dagfmt::layout::{AttributeKind, MAX_DEPTH, MIN_DEPTH};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 
+use crate::cloud::{SortedVoxels, Splat, VoxelSorter};
 use crate::error::ConvertError;
 use crate::external::{
     ColourSink, Colours, DagSink, FinishedDag, MIN_RUN_BUDGET, Scratch, SpillReport, SpillSettings,
@@ -31,14 +32,49 @@ use crate::voxlist;
 pub const SPLIT_BITS: u32 = 7;
 
 /// What the input file is.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug)]
 pub enum InputFormat {
     /// Decide from the content and the extension.
     Auto,
-    /// Wavefront OBJ.
-    Obj,
     /// A text or binary voxel list.
     Voxels,
+    /// A format of the registry ([`crate::input::FORMATS`]).
+    Named(&'static crate::input::Format),
+}
+
+/// A root cube given on the command line (`--bounds xmin,ymin,zmin,size`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bounds {
+    /// World-space minimum corner.
+    pub min: [f64; 3],
+    /// World-space edge.
+    pub size: f64,
+}
+
+impl Bounds {
+    /// Parses `xmin,ymin,zmin,size`.
+    pub fn parse(text: &str) -> Result<Bounds, ConvertError> {
+        let values: Vec<f64> = text
+            .split(',')
+            .map(|w| w.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| {
+                ConvertError::Usage(format!(
+                    "--bounds {text} is not four numbers xmin,ymin,zmin,size"
+                ))
+            })?;
+        match values.as_slice() {
+            [x, y, z, size] if [x, y, z, size].iter().all(|v| v.is_finite()) && *size > 0.0 => {
+                Ok(Bounds {
+                    min: [*x, *y, *z],
+                    size: *size,
+                })
+            }
+            _ => Err(ConvertError::Usage(format!(
+                "--bounds {text} is not four finite numbers xmin,ymin,zmin,size with size > 0"
+            ))),
+        }
+    }
 }
 
 /// Options of `dagtool convert`.
@@ -68,6 +104,11 @@ pub struct ConvertOptions {
     pub tmp_dir: Option<PathBuf>,
     /// Testing: spill whatever the memory, in runs and buckets of this shape.
     pub forced_spill: Option<ForcedSpill>,
+    /// The root cube, instead of one fitted to the input.
+    pub bounds: Option<Bounds>,
+    /// Point clouds: the radius of the ball each point sets (world units;
+    /// 0: the voxel containing the point).
+    pub point_radius: f64,
 }
 
 /// Testing: a conversion that spills to temporary files whatever the memory
@@ -99,6 +140,8 @@ impl ConvertOptions {
             chunk_bits: None,
             tmp_dir: None,
             forced_spill: None,
+            bounds: None,
+            point_radius: 0.0,
         }
     }
 }
@@ -338,22 +381,33 @@ fn build_error(e: dagfmt::builder::BuildError) -> ConvertError {
     ConvertError::Limit(format!("cannot build the DAG: {e}"))
 }
 
-fn detect_format(path: &Path, format: InputFormat) -> Result<InputFormat, ConvertError> {
-    if format != InputFormat::Auto {
-        return Ok(format);
+/// What `convert` makes of an input.
+enum Source {
+    VoxelList,
+    Registered(&'static crate::input::Format),
+}
+
+fn detect_format(path: &Path, format: InputFormat) -> Result<Source, ConvertError> {
+    match format {
+        InputFormat::Voxels => return Ok(Source::VoxelList),
+        InputFormat::Named(f) => return Ok(Source::Registered(f)),
+        InputFormat::Auto => {}
     }
     if voxlist::is_binary(path) {
-        return Ok(InputFormat::Voxels);
+        return Ok(Source::VoxelList);
+    }
+    if let Some(f) = crate::input::detect(path) {
+        return Ok(Source::Registered(f));
     }
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
     match ext.as_str() {
-        "obj" => Ok(InputFormat::Obj),
-        "txt" | "xyz" | "voxels" | "vox3" => Ok(InputFormat::Voxels),
+        "txt" | "xyz" | "voxels" | "vox3" => Ok(Source::VoxelList),
         _ => Err(ConvertError::Usage(format!(
-            "cannot tell the format of {} from its extension (.obj for meshes, .txt/.xyz/.voxels for voxel lists); \
+            "cannot tell the format of {} from its first bytes or its extension \
+             (meshes: .obj .gltf .glb .ply .stl; points: .ply .las .laz; voxels: .vox .binvox .txt .xyz .voxels); \
              use --input-format",
             path.display()
         ))),
@@ -391,10 +445,38 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     let limit = opts
         .memory_limit
         .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
+    if !(opts.point_radius >= 0.0 && opts.point_radius.is_finite()) {
+        return Err(ConvertError::Usage(format!(
+            "--point-radius {} is not a finite number >= 0",
+            opts.point_radius
+        )));
+    }
     let format = detect_format(&opts.input, opts.format)?;
     let mut summary = match format {
-        InputFormat::Voxels => convert_voxels(opts, limit, &scratch)?,
-        _ => convert_mesh(opts, limit, &scratch)?,
+        Source::VoxelList => convert_voxels(opts, limit, &scratch)?,
+        Source::Registered(format) => {
+            let options = crate::input::OpenOptions {
+                colors: opts.colors,
+            };
+            let open = || crate::input::open(&opts.input, format, &options);
+            match format.name {
+                // Formats that are meshes whatever their content load after
+                // the command line's checks.
+                "obj" | "stl" | "gltf" | "glb" => {
+                    convert_mesh(opts, limit, &scratch, || match open()? {
+                        crate::input::Input::Mesh(m) => Ok(*m),
+                        _ => Err(ConvertError::Input("not a mesh".into())),
+                    })?
+                }
+                _ => match open()? {
+                    crate::input::Input::Mesh(m) => convert_mesh(opts, limit, &scratch, || Ok(*m))?,
+                    crate::input::Input::Points(points) => {
+                        convert_points(opts, limit, &scratch, points)?
+                    }
+                    crate::input::Input::Voxels(grid) => convert_grid(opts, limit, &scratch, grid)?,
+                },
+            }
+        }
     };
     summary.memory_limit = limit;
     summary.tmp_dir = tmp_dir;
@@ -683,6 +765,7 @@ fn convert_mesh(
     opts: &ConvertOptions,
     limit: u64,
     scratch: &Scratch,
+    load: impl FnOnce() -> Result<Mesh, ConvertError>,
 ) -> Result<ConvertSummary, ConvertError> {
     let depth = opts.depth.ok_or_else(|| {
         ConvertError::Usage("converting a mesh needs --depth D or --resolution N".into())
@@ -710,17 +793,31 @@ fn convert_mesh(
     // Checked before any work, like the rest of the command line.
     spill_settings(opts, depth, 0)?;
     let t = Instant::now();
-    let mut mesh = Mesh::load_obj(&opts.input)?;
-    if opts.colors {
-        mesh.load_textures(opts.input.parent().unwrap_or(Path::new("")));
-    }
+    let mesh = load()?;
     if mesh.triangles.is_empty() {
         // An empty volume (spec/VDAG.md § 7), not an error: a tile of a larger
         // scene is often empty.
         return convert_empty_mesh(opts, depth, mesh.triangles.len(), scratch);
     }
     let check = mesh.check()?;
-    let mapping = GridMapping::fit(check.min, check.max, depth)?;
+    let mapping = match opts.bounds {
+        None => GridMapping::fit(check.min, check.max, depth)?,
+        Some(b) => {
+            let max = [0, 1, 2].map(|a| b.min[a] + b.size);
+            if (0..3).any(|a| check.min[a] < b.min[a] || check.max[a] > max[a]) {
+                return Err(ConvertError::Input(format!(
+                    "the mesh (bounding box {:?} to {:?}) extends beyond --bounds (cube {:?} to {max:?}); \
+                     meshes are not clipped",
+                    check.min, check.max, b.min
+                )));
+            }
+            GridMapping {
+                depth,
+                root_min: b.min,
+                root_size: b.size,
+            }
+        }
+    };
     let snapped = SnappedMesh::new(&mesh, &mapping);
     let mut summary = ConvertSummary {
         triangles: mesh.triangles.len() as u64,
@@ -926,6 +1023,382 @@ fn convert_mesh(
         attributes: AttributeKind::VoxelCount,
         root_min: mapping.root_min,
         root_size: mapping.root_size,
+        voxel_count: dag.voxel_count(),
+    };
+    write_output(opts, &dag, colors.as_ref(), header, &mut summary)?;
+    Ok(summary)
+}
+
+/// Feeds sorted (code, colour) voxels to the DAG builder and, with colours,
+/// the colour sink; returns the finished DAG and colours.
+fn build_sorted(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+    depth: u8,
+    run_budget: u64,
+    colour_cap: Option<u64>,
+    voxels: SortedVoxels,
+) -> Result<(FinishedDag, Option<Colours>), ConvertError> {
+    let settings = spill_settings(opts, depth, run_budget)?;
+    let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap));
+    let mut rgba: Vec<u8> = Vec::new();
+    let mut brick = None;
+    let mut mask = 0u64;
+    for v in voxels {
+        let (code, colour) = v?;
+        if brick != Some(code >> 6) {
+            if let Some(b) = brick {
+                sink.push_brick(b, mask)?;
+            }
+            brick = Some(code >> 6);
+            mask = 0;
+        }
+        mask |= 1 << (code & 63);
+        if let Some(colors) = &mut colors {
+            rgba.extend_from_slice(&colour.to_le_bytes());
+            if rgba.len() >= 1 << 16 {
+                colors.write(&rgba)?;
+                rgba.clear();
+            }
+        }
+    }
+    if let Some(b) = brick {
+        sink.push_brick(b, mask)?;
+    }
+    let colors = match colors {
+        Some(mut c) => {
+            c.write(&rgba)?;
+            Some(c.finish()?)
+        }
+        None => None,
+    };
+    let spinner = merge_spinner(opts);
+    let dag = sink.finish(|| merge_budget(limit), &|m| {
+        spinner.set_message(m.to_string())
+    })?;
+    spinner.finish_and_clear();
+    Ok((dag, colors))
+}
+
+/// Points read per batch.
+const POINT_BATCH: usize = 1 << 16;
+
+fn convert_points(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+    mut points: Box<dyn crate::input::PointSource>,
+) -> Result<ConvertSummary, ConvertError> {
+    let depth = opts.depth.ok_or_else(|| {
+        ConvertError::Usage("converting a point cloud needs --depth D or --resolution N".into())
+    })?;
+    if opts.solid {
+        return Err(ConvertError::Usage(
+            "--solid needs a mesh input, not a point cloud".into(),
+        ));
+    }
+    spill_settings(opts, depth, 0)?;
+    let t = Instant::now();
+    let radius = opts.point_radius;
+    let mut batch = Vec::with_capacity(POINT_BATCH);
+    // The root cube: given, or fitted (like a mesh's) to the points' box
+    // grown by the radius: the header's box (LAS) or a first pass.
+    let (root_min, root_size) = match opts.bounds {
+        Some(b) => (b.min, b.size),
+        None => {
+            let (lo, hi) = match points.declared_bounds() {
+                Some(b) => b,
+                None => {
+                    let mut lo = [f64::INFINITY; 3];
+                    let mut hi = [f64::NEG_INFINITY; 3];
+                    loop {
+                        batch.clear();
+                        if points.read(&mut batch, POINT_BATCH)? == 0 {
+                            break;
+                        }
+                        for p in &batch {
+                            for a in 0..3 {
+                                lo[a] = lo[a].min(p.position[a]);
+                                hi[a] = hi[a].max(p.position[a]);
+                            }
+                        }
+                    }
+                    points.rewind()?;
+                    (lo, hi)
+                }
+            };
+            if points.count() == 0 || !(0..3).all(|a| lo[a] <= hi[a]) {
+                return Err(ConvertError::Input("the point cloud has no points".into()));
+            }
+            let lo = lo.map(|c| c - radius);
+            let hi = hi.map(|c| c + radius);
+            // A single point (or a flat cloud) still gets a cube.
+            let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+            let (lo, hi) = if extent > 0.0 {
+                (lo, hi)
+            } else {
+                (lo.map(|c| c - 0.5), hi.map(|c| c + 0.5))
+            };
+            let m = GridMapping::fit(lo, hi, depth)?;
+            (m.root_min, m.root_size)
+        }
+    };
+    let splat = Splat {
+        root_min,
+        root_size,
+        depth,
+        radius,
+    };
+    let colored = opts.colors && points.has_colors();
+    let resident = current_rss().unwrap_or(0);
+    // A quarter of the limit sorts the voxels; the DAG builder gets the rest.
+    let sort_bytes = (limit / 4).max(16 << 20);
+    let plan = plan_memory(
+        limit,
+        resident + sort_bytes,
+        &format!(
+            "{} resident, {} to sort the points' voxels",
+            human_bytes(resident),
+            human_bytes(sort_bytes)
+        ),
+        colored,
+    )?;
+    let mut sorter = VoxelSorter::new(scratch, sort_bytes);
+    let mut read = 0u64;
+    let mut outside = 0u64;
+    let mut codes: Vec<Vec<(u64, u32)>> = Vec::new();
+    loop {
+        batch.clear();
+        let n = points.read(&mut batch, POINT_BATCH)?;
+        if n == 0 {
+            break;
+        }
+        read += n as u64;
+        // The batch's voxels in parallel, in order.
+        codes.clear();
+        batch
+            .par_chunks(4096)
+            .map(|chunk| {
+                let mut out = Vec::with_capacity(chunk.len());
+                let mut missed = 0u64;
+                for p in chunk {
+                    let rgba = u32::from_le_bytes(if colored { p.rgba } else { DEFAULT_COLOR });
+                    if !splat.voxels(p.position, |v| {
+                        out.push((dagfmt::morton::encode(v[0], v[1], v[2]), rgba));
+                    }) {
+                        missed += 1;
+                    }
+                }
+                (out, missed)
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .for_each(|(out, missed)| {
+                outside += missed;
+                codes.push(out);
+            });
+        for part in &codes {
+            for &(code, rgba) in part {
+                sorter.push(code, rgba)?;
+            }
+        }
+    }
+    if read != points.count() {
+        return Err(ConvertError::Input(format!(
+            "the point cloud declares {} points but has {read}",
+            points.count()
+        )));
+    }
+    if outside == read {
+        return Err(ConvertError::Input(format!(
+            "all {read} points lie outside the root cube"
+        )));
+    }
+    let mut summary = ConvertSummary {
+        input: format!(
+            "{}: {}{}",
+            opts.input.display(),
+            points.describe(),
+            if radius > 0.0 {
+                format!(", each a ball of radius {radius}")
+            } else {
+                String::new()
+            }
+        ),
+        fill: if radius > 0.0 {
+            format!("points: every voxel within {radius} of a point")
+        } else {
+            "points: the voxel containing each point".into()
+        },
+        depth,
+        root_min,
+        root_size,
+        load_seconds: t.elapsed().as_secs_f64(),
+        run_budget: plan.run_budget,
+        ..Default::default()
+    };
+    if outside > 0 {
+        summary.warnings.push(format!(
+            "{outside} of {read} points lie outside --bounds and were skipped"
+        ));
+    }
+    if opts.colors && !colored {
+        summary
+            .warnings
+            .push("the points have no colours; voxels are white".into());
+    }
+    drop(batch);
+    drop(codes);
+    let sorted = sorter.finish()?;
+    let t = Instant::now();
+    let (dag, colors) = build_sorted(
+        opts,
+        limit,
+        scratch,
+        depth,
+        plan.run_budget,
+        colored.then_some(plan.colour_cap),
+        sorted,
+    )?;
+    summary.build_seconds = t.elapsed().as_secs_f64();
+    let header = FileHeader {
+        depth,
+        attributes: AttributeKind::VoxelCount,
+        root_min,
+        root_size,
+        voxel_count: dag.voxel_count(),
+    };
+    write_output(opts, &dag, colors.as_ref(), header, &mut summary)?;
+    Ok(summary)
+}
+
+/// Converts a voxel grid (`.vox`, binvox). Without `--bounds` one input voxel
+/// is one output voxel: the depth is the grid's smallest (`--depth` may only
+/// ask for more, which places the same voxels in a larger root cube from
+/// the same corner). With `--bounds` each input voxel sets the output voxel
+/// containing its centre.
+fn convert_grid(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+    grid: crate::input::VoxelGrid,
+) -> Result<ConvertSummary, ConvertError> {
+    if opts.solid {
+        return Err(ConvertError::Usage(
+            "--solid needs a mesh input, not a voxel grid".into(),
+        ));
+    }
+    let t = Instant::now();
+    let depth = match (opts.depth, opts.bounds) {
+        (Some(d), None) if d < grid.depth => {
+            return Err(ConvertError::Usage(format!(
+                "--depth {d} is below the input's depth {}: one input voxel is one output voxel, \
+                 so the depth is at least the smallest that holds the grid (or give --bounds to resample)",
+                grid.depth
+            )));
+        }
+        (Some(d), _) => d,
+        (None, None) => grid.depth,
+        (None, Some(_)) => {
+            return Err(ConvertError::Usage(
+                "--bounds with a voxel grid needs --depth D or --resolution N".into(),
+            ));
+        }
+    };
+    spill_settings(opts, depth, 0)?;
+    let colored = opts.colors && !grid.colors.is_empty();
+    let (root_min, root_size) = match opts.bounds {
+        Some(b) => (b.min, b.size),
+        None => (grid.origin, grid.voxel_size * (1u64 << depth) as f64),
+    };
+    let resident = current_rss().unwrap_or(0);
+    let sort_bytes = (grid.voxels.len() as u64 * 16).clamp(1 << 20, limit / 4);
+    let plan = plan_memory(
+        limit,
+        resident + sort_bytes,
+        &format!("{} resident with the voxel grid", human_bytes(resident)),
+        colored,
+    )?;
+    let mut sorter = VoxelSorter::new(scratch, sort_bytes);
+    let splat = Splat {
+        root_min,
+        root_size,
+        depth,
+        radius: 0.0,
+    };
+    let mut outside = 0u64;
+    for (i, v) in grid.voxels.iter().enumerate() {
+        let rgba = u32::from_le_bytes(if colored {
+            grid.colors[i]
+        } else {
+            DEFAULT_COLOR
+        });
+        if opts.bounds.is_some() {
+            let centre =
+                [0, 1, 2].map(|a| grid.origin[a] + (f64::from(v[a]) + 0.5) * grid.voxel_size);
+            let mut code = None;
+            if splat.voxels(centre, |c| {
+                code = Some(dagfmt::morton::encode(c[0], c[1], c[2]))
+            }) {
+                if let Some(c) = code {
+                    sorter.push(c, rgba)?;
+                }
+            } else {
+                outside += 1;
+            }
+        } else {
+            sorter.push(dagfmt::morton::encode(v[0], v[1], v[2]), rgba)?;
+        }
+    }
+    let mut summary = ConvertSummary {
+        input: format!("{}: {}", opts.input.display(), grid.description),
+        fill: if opts.bounds.is_some() {
+            "voxel grid resampled: each voxel sets the output voxel containing its centre".into()
+        } else {
+            "voxel grid (one input voxel, one output voxel)".into()
+        },
+        depth,
+        root_min,
+        root_size,
+        load_seconds: t.elapsed().as_secs_f64(),
+        run_budget: plan.run_budget,
+        ..Default::default()
+    };
+    if outside > 0 {
+        summary.warnings.push(format!(
+            "{outside} of {} voxels lie outside --bounds and were skipped",
+            grid.voxels.len()
+        ));
+        if outside == grid.voxels.len() as u64 {
+            return Err(ConvertError::Input(
+                "every voxel lies outside --bounds".into(),
+            ));
+        }
+    }
+    if opts.colors && !colored {
+        summary
+            .warnings
+            .push("the grid has no colours; voxels are white".into());
+    }
+    drop(grid);
+    let t = Instant::now();
+    let (dag, colors) = build_sorted(
+        opts,
+        limit,
+        scratch,
+        depth,
+        plan.run_budget,
+        colored.then_some(plan.colour_cap),
+        sorter.finish()?,
+    )?;
+    summary.build_seconds = t.elapsed().as_secs_f64();
+    let header = FileHeader {
+        depth,
+        attributes: AttributeKind::VoxelCount,
+        root_min,
+        root_size,
         voxel_count: dag.voxel_count(),
     };
     write_output(opts, &dag, colors.as_ref(), header, &mut summary)?;

@@ -171,6 +171,12 @@ impl Scratch {
         )
     }
 
+    /// A new unnamed temporary file to write and then read back (counted
+    /// like the others).
+    pub fn counted_file(&self) -> io::Result<CountedFile> {
+        Ok(CountedFile(self.writer()?))
+    }
+
     fn writer(&self) -> io::Result<TempFile> {
         Ok(TempFile {
             file: self.file()?,
@@ -208,6 +214,30 @@ impl Write for TempFile {
 impl Drop for TempFile {
     fn drop(&mut self) {
         self.usage.held.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+/// An unnamed temporary file from [`Scratch::counted_file`]: written
+/// through `Write`, then read back from its start with [`CountedFile::reader`].
+#[derive(Debug)]
+pub struct CountedFile(TempFile);
+
+impl Write for CountedFile {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.0.write(buf)
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush()
+    }
+}
+
+impl CountedFile {
+    /// The file, positioned at its start, for reading.
+    pub fn reader(&mut self) -> io::Result<&File> {
+        use std::io::Seek;
+        self.0.file.seek(io::SeekFrom::Start(0))?;
+        Ok(&self.0.file)
     }
 }
 

@@ -11,8 +11,15 @@
 //!   fails cleanly, and what loads is sorted, inside its volume, and comes
 //!   back unchanged through the binary form.
 //!
+//! - [`gltf_import`], [`ply_import`], [`stl_import`], [`las_import`],
+//!   [`vox_import`], [`binvox_import`]: each input format's reader on bytes
+//!   held in memory (no file access) loads or fails cleanly, and what loads
+//!   is consistent: meshes pass on to the checks of [`obj_import`], point
+//!   clouds have finite points, voxel grids lie inside their depth.
+//!
 //! Not part of the stable API.
 
+use crate::input::{Input, PointSource, VoxelGrid};
 use crate::mesh::{GridMapping, Mesh, SnappedMesh, Texture};
 use crate::voxlist;
 
@@ -21,13 +28,88 @@ pub const OBJ_DEPTH: u8 = 6;
 
 /// The OBJ import harness.
 pub fn obj_import(bytes: &[u8]) {
-    let Ok(mesh) = Mesh::load_obj_bytes(bytes, "fuzz.obj") else {
+    let Ok(mesh) = crate::input::obj::load_bytes(bytes, "fuzz.obj") else {
         return;
     };
+    check_mesh(mesh);
+}
+
+/// The glTF import harness (`.gltf` JSON or `.glb`; external files refused).
+pub fn gltf_import(bytes: &[u8]) {
+    if let Ok(mesh) = crate::input::gltf::load_bytes(bytes, "fuzz.glb", None, true) {
+        check_mesh(mesh);
+    }
+}
+
+/// The PLY import harness: meshes and point clouds.
+pub fn ply_import(bytes: &[u8]) {
+    match crate::input::ply::load_bytes(bytes, "fuzz.ply") {
+        Ok(Input::Mesh(mesh)) => check_mesh(*mesh),
+        Ok(Input::Points(points)) => check_points(points),
+        Ok(Input::Voxels(_)) => panic!("PLY gives no voxel grid"),
+        Err(_) => {}
+    }
+}
+
+/// The STL import harness.
+pub fn stl_import(bytes: &[u8]) {
+    if let Ok(mesh) = crate::input::stl::load_bytes(bytes.to_vec(), "fuzz.stl") {
+        check_mesh(mesh);
+    }
+}
+
+/// The LAS/LAZ import harness.
+pub fn las_import(bytes: &[u8]) {
+    if let Ok(points) = crate::input::las::load_bytes(bytes, "fuzz.las") {
+        check_points(points);
+    }
+}
+
+/// The MagicaVoxel import harness.
+pub fn vox_import(bytes: &[u8]) {
+    if let Ok(grid) = crate::input::vox::load_bytes(bytes, "fuzz.vox") {
+        check_grid(&grid);
+    }
+}
+
+/// The binvox import harness.
+pub fn binvox_import(bytes: &[u8]) {
+    if let Ok(grid) = crate::input::binvox::load_bytes(bytes, "fuzz.binvox") {
+        check_grid(&grid);
+    }
+}
+
+/// A point cloud's points are all readable and finite, as many as declared.
+fn check_points(mut points: Box<dyn PointSource>) {
+    let mut all = Vec::new();
+    loop {
+        match points.read(&mut all, 1024) {
+            Ok(0) => break,
+            Ok(_) => {}
+            Err(_) => return,
+        }
+    }
+    assert_eq!(all.len() as u64, points.count());
+    assert!(all.iter().all(|p| p.position.iter().all(|c| c.is_finite())));
+}
+
+/// A voxel grid lies inside its depth and has a usable placement.
+fn check_grid(grid: &VoxelGrid) {
+    assert!(!grid.voxels.is_empty());
+    assert!((dagfmt::layout::MIN_DEPTH..=dagfmt::layout::MAX_DEPTH).contains(&grid.depth));
+    let n = 1u64 << grid.depth;
+    assert!(grid.voxels.iter().flatten().all(|&c| u64::from(c) < n));
+    assert!(grid.colors.is_empty() || grid.colors.len() == grid.voxels.len());
+    assert!(grid.voxel_size > 0.0 && grid.voxel_size.is_finite());
+}
+
+/// The checks of a loaded mesh (every importer's).
+fn check_mesh(mesh: Mesh) {
     assert_eq!(mesh.triangles.len(), mesh.triangle_material.len());
     for t in 0..mesh.triangles.len() {
         let _ = mesh.triangle_color(t);
     }
+    assert!(mesh.vertex_colors.is_empty() || mesh.vertex_colors.len() == mesh.vertices.len());
     let Ok(check) = mesh.check() else { return };
     assert!(
         mesh.triangles
@@ -55,6 +137,12 @@ pub fn obj_import(bytes: &[u8]) {
         let _ = snapped.triangle(t as u32);
     }
     let _ = snapped.is_closed();
+    if !mesh.vertex_colors.is_empty() {
+        for (t, tri) in mesh.triangles.iter().enumerate() {
+            let p = mesh.vertices[tri[0] as usize];
+            let _ = mesh.voxel_color(t, p, 1.0);
+        }
+    }
     textured_colors(mesh);
 }
 
@@ -70,6 +158,7 @@ fn textured_colors(mut mesh: Mesh) {
     let Some(texture) = Texture::from_rgba(2, 2, texels.clone()) else {
         unreachable!("a 2 x 2 texture has 16 bytes");
     };
+    mesh.vertex_colors.clear();
     mesh.colors = vec![[255; 4]];
     mesh.textures = vec![Some(texture)];
     mesh.triangle_material = vec![0; mesh.triangles.len()];

@@ -1,7 +1,12 @@
 //! `dagtool`'s library: the mesh-to-`.vdag` converter and the file commands.
 //!
 //! - [`geom`]: exact triangle/box predicates on a fixed-point lattice;
-//! - [`mesh`]: OBJ loading, the root cube, snapping;
+//! - [`input`]: the input formats, one module each (OBJ, glTF, PLY, STL,
+//!   LAS/LAZ, MagicaVoxel, binvox), producing meshes, point streams or
+//!   voxel grids;
+//! - [`mesh`]: the common triangle mesh and its colours, the root cube,
+//!   snapping;
+//! - [`cloud`]: voxels of point clouds and voxel grids, sorted out of core;
 //! - [`voxelize`]: conservative surface voxelization of triangles into chunks;
 //! - [`solid`]: interior fill by exact crossing parity;
 //! - [`pipeline`]: binning, parallel chunked voxelization in Morton order;
@@ -13,9 +18,11 @@
 //! - [`demo`]: the whole pipeline on a built-in scene;
 //! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`;
 //! - [`verify`]: the `verify` command (ray casts on the mesh and on the DAG);
+//! - [`verify_points`]: `verify` for point clouds (exact voxel checks);
 //! - `fuzzing` (hidden): the harnesses of the importer fuzz targets in `fuzz/`.
 #![deny(missing_docs)]
 
+pub mod cloud;
 pub mod cmd;
 pub mod convert;
 pub mod demo;
@@ -24,12 +31,14 @@ pub mod external;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod geom;
+pub mod input;
 pub mod mesh;
 pub mod output;
 pub mod pipeline;
 pub mod solid;
 pub mod sysinfo;
 pub mod verify;
+pub mod verify_points;
 pub mod voxelize;
 pub mod voxlist;
 

@@ -6,15 +6,48 @@ use std::process::ExitCode;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use dagtool::ConvertError;
 use dagtool::cmd;
-use dagtool::convert::{self, ConvertOptions, InputFormat};
+use dagtool::convert::{self, Bounds, ConvertOptions, InputFormat};
 use dagtool::output::{StdoutReport, print_stdout};
 use dagtool::sysinfo::parse_size;
 
 const CONVERT_HELP: &str = "\
 INPUTS
+  Recognised by their first bytes, then their extension; --input-format names one.
+
   Wavefront OBJ (.obj): every model and group; polygons are triangulated as fans;
   points and lines become zero-area triangles. Materials (Kd, d, map_Kd) are read
   for --colors.
+
+  glTF 2.0 (.gltf with external or data: URI buffers, .glb): every mesh instance
+  of the default scene (all scenes without one), node transforms composed;
+  triangles, strips and fans; u8/u16/u32 or no indices; normalized, quantized
+  (KHR_mesh_quantization) and sparse accessors. --colors: baseColorFactor x
+  baseColorTexture (its texCoord set, sampler wrap modes, KHR_texture_transform)
+  x COLOR_0. Required extensions it does not support (Draco, meshopt, KTX2,
+  WebP, ...) are refused, by name; a texture that cannot be read is an error.
+
+  PLY (.ply, ASCII or binary, either byte order): with faces a mesh (polygons as
+  fans), without a point cloud. Vertex colours red green blue [alpha] (uchar,
+  ushort or float in [0, 1]) for --colors.
+
+  STL (.stl, ASCII or binary): triangles; no colours.
+
+  LAS 1.0-1.4 (.las) and LAZ (.laz), point formats 0-10: point clouds; RGB is
+  16-bit in LAS and becomes 8-bit as round(v / 257).
+
+  Point clouds (PLY, LAS, LAZ) are read in a stream and need --depth. Each point
+  sets the voxel containing it; --point-radius R sets every voxel within R of a
+  point. A voxel takes the colour of the first point (in file order) setting it.
+  The voxels go through an external sort within --memory-limit (sorted runs
+  spilled to temporary files), so clouds larger than memory convert.
+
+  MagicaVoxel (.vox): every model, placed by the scene graph (nTRN translations
+  and rotations, nGRP, nSHP; first frame); palette colours for --colors.
+  binvox (.binvox): the occupancy grid; its translate and scale are the root
+  cube. For both, one input voxel is one output voxel at the smallest depth that
+  holds the grid; --depth may only be larger (the same voxels in a larger cube
+  from the same corner). With --bounds each input voxel sets the output voxel
+  holding its centre.
 
   Text voxel list (.txt, .xyz, .voxels): one voxel per line, `x y z` as unsigned
   integers; `#` starts a comment; blank lines are ignored. Without --depth the
@@ -29,8 +62,11 @@ INPUTS
   The file is exactly 20 + 12 N bytes. Duplicates are allowed in both forms.
   Voxel lists map to the root cube min (0,0,0), size 2^D (world units = voxels).
 
-PLACEMENT (meshes)
-  The root cube is centred on the mesh's bounding box with edge
+PLACEMENT (meshes and point clouds)
+  --bounds xmin,ymin,zmin,size fixes the root cube, so that tiles of one scene
+  convert onto one grid: points outside it are skipped (with a warning), a mesh
+  that leaves it is refused (meshes are not clipped). Without it the root cube
+  is centred on the bounding box (of a point cloud: grown by the radius) with edge
   max_extent * 2^D / (2^D - 1): along the longest axis the mesh spans 2^D - 1
   voxels with half a voxel of padding on each side. It is stored in the header,
   so hit points map back to mesh coordinates. Vertices are snapped to 1/65536
@@ -93,7 +129,8 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Convert an OBJ mesh or a voxel list to a .vdag file.
+    /// Convert a mesh (OBJ, glTF, PLY, STL), a point cloud (PLY, LAS, LAZ),
+    /// a voxel grid (MagicaVoxel, binvox) or a voxel list to a .vdag file.
     #[command(after_long_help = CONVERT_HELP)]
     Convert(ConvertArgs),
     /// Check .vdag (or .vdag.zst) files against every rule of the format.
@@ -157,7 +194,8 @@ enum Command {
     /// holds, 1 some criterion fails, 2 usage or I/O error.
     #[command(after_long_help = dagtool::verify::HELP)]
     Verify {
-        /// The source mesh (OBJ), in the coordinates it was converted from.
+        /// The source mesh (OBJ, glTF, PLY, STL) or point cloud (PLY, LAS,
+        /// LAZ), in the coordinates it was converted from.
         mesh: PathBuf,
         /// The .vdag (or .vdag.zst) file converted from it.
         file: PathBuf,
@@ -171,6 +209,9 @@ enum Command {
         /// Print JSON instead of text.
         #[arg(long)]
         json: bool,
+        /// Point clouds: the --point-radius the cloud was converted with.
+        #[arg(long, value_name = "R", default_value_t = 0.0)]
+        point_radius: f64,
     },
     /// The whole pipeline on a built-in scene: make a procedural mesh, convert,
     /// validate, render a PNG (GPU when an adapter exists, else CPU), and run
@@ -223,13 +264,28 @@ enum FormatArg {
     Auto,
     /// Wavefront OBJ.
     Obj,
+    /// glTF 2.0, JSON (.gltf).
+    Gltf,
+    /// glTF 2.0, binary (.glb).
+    Glb,
+    /// PLY mesh or point cloud.
+    Ply,
+    /// STL mesh, ASCII or binary.
+    Stl,
+    /// LAS or LAZ point cloud.
+    Las,
+    /// MagicaVoxel .vox.
+    Vox,
+    /// binvox voxel grid.
+    Binvox,
     /// Text or binary voxel list.
     Voxels,
 }
 
 #[derive(Args, Debug)]
 struct ConvertArgs {
-    /// Input: .obj mesh, or a text/binary voxel list.
+    /// Input: a mesh (.obj .gltf .glb .ply .stl), a point cloud (.ply .las
+    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list.
     input: PathBuf,
     /// Output .vdag file.
     #[arg(short, long)]
@@ -243,12 +299,21 @@ struct ConvertArgs {
     /// Fill the interior (see below for open meshes).
     #[arg(long)]
     solid: bool,
-    /// Store per-voxel colours from the OBJ materials (diffuse Kd and map_Kd textures).
+    /// Store per-voxel colours (materials, textures, vertex, point and palette colours).
     #[arg(long)]
     colors: bool,
     /// Input format.
     #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
     input_format: FormatArg,
+    /// The root cube, instead of one fitted to the input: its minimum corner
+    /// and edge in the input's units, so that tiles of one scene convert
+    /// onto one grid.
+    #[arg(long, value_name = "XMIN,YMIN,ZMIN,SIZE", allow_hyphen_values = true)]
+    bounds: Option<String>,
+    /// Point clouds: set every voxel within this distance (input units) of
+    /// a point, not only the voxel containing it.
+    #[arg(long, value_name = "R", default_value_t = 0.0)]
+    point_radius: f64,
     /// Memory to work in (e.g. 4G, 512M): beyond it the DAG is built in runs
     /// spilled to temporary files; default: 3/4 of physical memory.
     #[arg(long)]
@@ -281,6 +346,24 @@ struct ConvertArgs {
     quiet: bool,
 }
 
+fn format_of(arg: FormatArg) -> InputFormat {
+    let named = |name: &str| {
+        InputFormat::Named(dagtool::input::by_name(name).expect("every format is registered"))
+    };
+    match arg {
+        FormatArg::Auto => InputFormat::Auto,
+        FormatArg::Obj => named("obj"),
+        FormatArg::Gltf => named("gltf"),
+        FormatArg::Glb => named("glb"),
+        FormatArg::Ply => named("ply"),
+        FormatArg::Stl => named("stl"),
+        FormatArg::Las => named("las"),
+        FormatArg::Vox => named("vox"),
+        FormatArg::Binvox => named("binvox"),
+        FormatArg::Voxels => InputFormat::Voxels,
+    }
+}
+
 fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
     let depth = match (args.depth, args.resolution) {
         (Some(d), _) => Some(convert::check_depth(d)?),
@@ -296,11 +379,9 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
         None => None,
     };
     let mut opts = ConvertOptions::new(&args.input, &args.output, depth);
-    opts.format = match args.input_format {
-        FormatArg::Auto => InputFormat::Auto,
-        FormatArg::Obj => InputFormat::Obj,
-        FormatArg::Voxels => InputFormat::Voxels,
-    };
+    opts.format = format_of(args.input_format);
+    opts.bounds = args.bounds.as_deref().map(Bounds::parse).transpose()?;
+    opts.point_radius = args.point_radius;
     opts.solid = args.solid;
     opts.colors = args.colors;
     opts.force = args.force;
@@ -415,12 +496,14 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
             rays,
             seed,
             json,
+            point_radius,
         } => {
             let opts = dagtool::verify::VerifyOptions {
                 mesh,
                 dag: file,
                 rays,
                 seed,
+                point_radius,
             };
             // Like `validate`: 1 means "fails the criteria", so every error is 2.
             match dagtool::verify::run(&opts, json) {

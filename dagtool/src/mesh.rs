@@ -1,5 +1,6 @@
-//! Triangle meshes: loading Wavefront OBJ files, placing them in the root cube
-//! and snapping them to the lattice the voxelizer works on.
+//! Triangle meshes, the common form of every mesh input (`crate::input`):
+//! their colours, placing them in the root cube and snapping them to the
+//! lattice the voxelizer works on.
 
 use std::path::Path;
 
@@ -23,7 +24,8 @@ pub struct Mesh {
     /// The diffuse texture file (`map_Kd`, as written) of each material
     /// (indexed like `colors`).
     pub texture_files: Vec<Option<String>>,
-    /// The decoded textures, once [`Mesh::load_textures`] has read them
+    /// The decoded textures, once the input has read them (OBJ:
+    /// [`crate::input::obj::load_textures`])
     /// (indexed like `colors`; `None` for a material without a readable one).
     pub textures: Vec<Option<Texture>>,
     /// Texture coordinates (`vt`) of the file.
@@ -38,6 +40,46 @@ pub struct Mesh {
     pub texture_warnings: Vec<String>,
     /// The name of each material (for messages).
     pub material_names: Vec<String>,
+    /// Per-vertex colours (glTF `COLOR_0`, PLY `red green blue [alpha]`),
+    /// indexed like `vertices`; empty when the mesh has none. A voxel's
+    /// colour is then interpolated at the triangle's closest point and
+    /// multiplied with the material's colour and texel.
+    pub vertex_colors: Vec<[u8; 4]>,
+}
+
+/// How texture coordinates outside `[0, 1)` read the image (glTF sampler
+/// wrap modes; OBJ textures repeat).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Wrap {
+    /// The image repeats.
+    #[default]
+    Repeat,
+    /// The image repeats, every other copy mirrored.
+    MirroredRepeat,
+    /// Coordinates are clamped to the edge texels.
+    ClampToEdge,
+}
+
+impl Wrap {
+    /// A coordinate mapped into `[0, 1]` (non-finite ones to 0).
+    pub fn apply(self, c: f64) -> f64 {
+        if !c.is_finite() {
+            return 0.0;
+        }
+        match self {
+            Wrap::Repeat => c - c.floor(),
+            Wrap::MirroredRepeat => {
+                let f = c.floor();
+                let frac = c - f;
+                if f.rem_euclid(2.0) == 0.0 {
+                    frac
+                } else {
+                    1.0 - frac
+                }
+            }
+            Wrap::ClampToEdge => c.clamp(0.0, 1.0),
+        }
+    }
 }
 
 /// A material's diffuse texture (`map_Kd`), decoded to RGBA8, with its
@@ -47,6 +89,8 @@ pub struct Mesh {
 pub struct Texture {
     /// Level 0 is the image; each next one halves the sides (at least 1).
     levels: Vec<MipLevel>,
+    /// How `u` and `v` outside `[0, 1)` read the image.
+    wrap: [Wrap; 2],
 }
 
 /// One mip level: RGBA8 texels, rows from the top of the image.
@@ -110,7 +154,28 @@ impl Texture {
             let next = last.halved();
             levels.push(next);
         }
-        Some(Texture { levels })
+        Some(Texture {
+            levels,
+            wrap: [Wrap::Repeat; 2],
+        })
+    }
+
+    /// The same texture with other wrap modes for `u` and `v`.
+    pub fn with_wrap(mut self, wrap: [Wrap; 2]) -> Texture {
+        self.wrap = wrap;
+        self
+    }
+
+    /// Decodes an image held in memory (PNG, JPEG, TGA or BMP).
+    pub fn decode(bytes: &[u8]) -> Result<Texture, String> {
+        let image = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| e.to_string())?
+            .decode()
+            .map_err(|e| e.to_string())?
+            .into_rgba8();
+        let (width, height) = image.dimensions();
+        Texture::from_rgba(width, height, image.into_raw()).ok_or_else(|| "empty image".into())
     }
 
     /// Reads an image file (PNG, JPEG, TGA or BMP).
@@ -136,8 +201,9 @@ impl Texture {
     /// The texel at texture coordinates `uv` for a footprint `texels` wide in
     /// texels of the image: the nearest texel of the mip level whose texels
     /// are closest to the footprint in size (the image itself for footprints
-    /// up to about one texel). The texture repeats outside `[0, 1)`, and `v`
-    /// runs up the image, as in OBJ.
+    /// up to about one texel). Outside `[0, 1)` the coordinates wrap as the
+    /// texture's [`Wrap`] modes say (repeating by default), and `v` runs up
+    /// the image, as in OBJ.
     pub fn sample(&self, uv: [f64; 2], texels: f64) -> [u8; 4] {
         let level = if texels > 1.0 {
             // Rounded log2, in whole levels; NaN and infinities go to the ends.
@@ -146,8 +212,7 @@ impl Texture {
             0
         };
         let l = &self.levels[level];
-        let wrap = |c: f64| if c.is_finite() { c - c.floor() } else { 0.0 };
-        let (u, v) = (wrap(uv[0]), wrap(uv[1]));
+        let (u, v) = (self.wrap[0].apply(uv[0]), self.wrap[1].apply(uv[1]));
         let x = ((u * f64::from(l.width)) as u32).min(l.width - 1);
         let y = (((1.0 - v) * f64::from(l.height)) as u32).min(l.height - 1);
         let at = (y as usize * l.width as usize + x as usize) * 4;
@@ -158,25 +223,6 @@ impl Texture {
     fn size(&self) -> (u32, u32) {
         (self.levels[0].width, self.levels[0].height)
     }
-}
-
-/// Where a material's `map_Kd` file is, relative to the OBJ's directory: the
-/// name as written, else its last word (the name follows any options such as
-/// `-s 1 1 1`), with `\\` read as `/` (files exported on Windows).
-fn texture_path(dir: &Path, name: &str) -> std::path::PathBuf {
-    let last = name.split_whitespace().last().unwrap_or(name);
-    let candidates = [
-        name,
-        last,
-        &name.replace('\\', "/"),
-        &last.replace('\\', "/"),
-    ]
-    .map(|n| dir.join(n));
-    candidates
-        .iter()
-        .find(|c| c.is_file())
-        .unwrap_or(&candidates[0])
-        .clone()
 }
 
 /// `a - b`.
@@ -276,128 +322,6 @@ impl Mesh {
         }
     }
 
-    /// The options every OBJ is loaded with: polygons triangulated as fans,
-    /// one index per position.
-    fn obj_options() -> tobj::LoadOptions {
-        tobj::LoadOptions {
-            triangulate: true,
-            single_index: false,
-            ..Default::default()
-        }
-    }
-
-    /// Loads every model and group of a Wavefront OBJ file, triangulating
-    /// polygons (as fans). Points and lines in the file become zero-area
-    /// triangles (tobj's behaviour), which the voxelizer treats as points and
-    /// segments.
-    pub fn load_obj(path: &Path) -> Result<Mesh, ConvertError> {
-        let name = path.display().to_string();
-        let file = std::fs::File::open(path)
-            .map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
-        let mut guarded = IndexGuard::new(std::io::BufReader::new(file));
-        // What `tobj::load_obj` does, with the index guard in between:
-        // material libraries are looked up next to the OBJ file.
-        let loaded = tobj::load_obj_buf(&mut guarded, &Self::obj_options(), |mtl| {
-            tobj::load_mtl(
-                path.parent()
-                    .map_or_else(|| mtl.to_owned(), |p| p.join(mtl)),
-            )
-        });
-        guarded.check(&name)?;
-        Self::from_tobj(loaded, &name)
-    }
-
-    /// Loads an OBJ held in memory, like [`Mesh::load_obj`] but without
-    /// touching the file system: `mtllib` statements are not followed (the
-    /// mesh gets a material warning and default colours). `name` names the
-    /// input in messages.
-    pub fn load_obj_bytes(bytes: &[u8], name: &str) -> Result<Mesh, ConvertError> {
-        let mut guarded = IndexGuard::new(bytes);
-        let loaded = tobj::load_obj_buf(&mut guarded, &Self::obj_options(), |_| {
-            Err(tobj::LoadError::OpenFileFailed)
-        });
-        guarded.check(name)?;
-        Self::from_tobj(loaded, name)
-    }
-
-    /// The mesh of what tobj loaded from `name`.
-    fn from_tobj(loaded: tobj::LoadResult, name: &str) -> Result<Mesh, ConvertError> {
-        let (models, materials) =
-            loaded.map_err(|e| ConvertError::Input(format!("cannot read OBJ file {name}: {e}")))?;
-        let mut mesh = Mesh::default();
-        match materials {
-            Ok(materials) => {
-                mesh.colors = materials
-                    .iter()
-                    .map(|m| match m.diffuse {
-                        Some(kd) => {
-                            let c = kd.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8);
-                            let a = m
-                                .dissolve
-                                .map_or(255, |d| (d.clamp(0.0, 1.0) * 255.0).round() as u8);
-                            [c[0], c[1], c[2], a]
-                        }
-                        None => DEFAULT_COLOR,
-                    })
-                    .collect();
-                mesh.texture_files = materials
-                    .iter()
-                    .map(|m| m.diffuse_texture.clone())
-                    .collect();
-                mesh.material_names = materials.iter().map(|m| m.name.clone()).collect();
-            }
-            Err(e) => {
-                mesh.material_warning = Some(format!("materials not loaded ({e})"));
-            }
-        }
-        let textured = mesh.texture_files.iter().any(Option::is_some);
-        for model in &models {
-            let m = &model.mesh;
-            let base = mesh.vertices.len();
-            if base + m.positions.len() / 3 > u32::MAX as usize {
-                return Err(ConvertError::Input(format!(
-                    "{name}: more than 2^32 vertices"
-                )));
-            }
-            mesh.vertices.extend(
-                m.positions
-                    .chunks_exact(3)
-                    .map(|p| [f64::from(p[0]), f64::from(p[1]), f64::from(p[2])]),
-            );
-            let material = m
-                .material_id
-                .filter(|&id| id < mesh.colors.len())
-                .map_or(u32::MAX, |id| id as u32);
-            for t in m.indices.chunks_exact(3) {
-                mesh.triangles
-                    .push([t[0], t[1], t[2]].map(|i| i + base as u32));
-                mesh.triangle_material.push(material);
-            }
-            if textured {
-                // tobj keeps one texture index per position index when the
-                // faces have them (and none otherwise).
-                let uv_base = mesh.texcoords.len() as u32;
-                mesh.texcoords.extend(
-                    m.texcoords
-                        .chunks_exact(2)
-                        .map(|c| [f64::from(c[0]), f64::from(c[1])]),
-                );
-                let count = m.indices.len() / 3;
-                if m.texcoord_indices.len() == m.indices.len() {
-                    mesh.triangle_texcoords.extend(
-                        m.texcoord_indices
-                            .chunks_exact(3)
-                            .map(|t| [t[0], t[1], t[2]].map(|i| i.saturating_add(uv_base))),
-                    );
-                } else {
-                    mesh.triangle_texcoords
-                        .extend(std::iter::repeat_n([u32::MAX; 3], count));
-                }
-            }
-        }
-        Ok(mesh)
-    }
-
     /// The colour of triangle `t`'s material.
     pub fn triangle_color(&self, t: usize) -> [u8; 4] {
         let m = self.triangle_material[t];
@@ -407,35 +331,12 @@ impl Mesh {
             .unwrap_or(DEFAULT_COLOR)
     }
 
-    /// Decodes the materials' textures, their file names taken relative to
-    /// `dir` (the OBJ's folder); one that cannot be read adds a warning and
-    /// leaves its material with `Kd`. Only `--colors` needs them.
-    pub fn load_textures(&mut self, dir: &Path) {
-        let mut warnings = Vec::new();
-        self.textures = self
-            .texture_files
-            .iter()
-            .enumerate()
-            .map(|(m, file)| {
-                let path = texture_path(dir, file.as_deref()?);
-                Texture::load(&path)
-                    .map_err(|e| {
-                        let material = self.material_names.get(m).map_or("?", String::as_str);
-                        warnings.push(format!(
-                            "texture {} of material {material} not loaded ({e})",
-                            path.display()
-                        ));
-                    })
-                    .ok()
-            })
-            .collect();
-        self.texture_warnings = warnings;
-    }
-
-    /// Whether some triangle takes its colour from a texture (so that
+    /// Whether a triangle's colour varies over it: some triangle takes its
+    /// colour from a texture, or the vertices have colours (so that
     /// [`Mesh::voxel_color`] needs the voxel's position).
     pub fn has_textures(&self) -> bool {
-        !self.triangle_texcoords.is_empty() && self.textures.iter().any(Option::is_some)
+        !self.vertex_colors.is_empty()
+            || (!self.triangle_texcoords.is_empty() && self.textures.iter().any(Option::is_some))
     }
 
     /// The colour of a voxel of edge `voxel` set by triangle `t`, whose centre
@@ -446,9 +347,29 @@ impl Mesh {
     /// square root of its area ratio), times `Kd`; the triangle's colour
     /// ([`Mesh::triangle_color`]) without a texture or texture coordinates.
     pub fn voxel_color(&self, t: usize, p: [f64; 3], voxel: f64) -> [u8; 4] {
-        let tint = self.triangle_color(t);
+        let mut tint = self.triangle_color(t);
+        if let Some(c) = self.vertex_color(t, p) {
+            tint = modulate(c, tint);
+        }
         self.texel(t, p, voxel)
             .map_or(tint, |texel| modulate(texel, tint))
+    }
+
+    /// The vertex colour of triangle `t` interpolated at its point closest to
+    /// `p`, or `None` when the mesh has no vertex colours.
+    fn vertex_color(&self, t: usize, p: [f64; 3]) -> Option<[u8; 4]> {
+        if self.vertex_colors.is_empty() {
+            return None;
+        }
+        let tri = self.triangles[t];
+        let c = gather(&self.vertex_colors, tri)?;
+        let v = gather(&self.vertices, tri)?;
+        let w = closest_barycentric(p, v);
+        Some([0, 1, 2, 3].map(|k| {
+            let x =
+                w[0] * f64::from(c[0][k]) + w[1] * f64::from(c[1][k]) + w[2] * f64::from(c[2][k]);
+            x.round().clamp(0.0, 255.0) as u8
+        }))
     }
 
     /// The texel of [`Mesh::voxel_color`], or `None` when triangle `t` has no
@@ -533,122 +454,6 @@ impl Mesh {
             max,
             degenerate,
         })
-    }
-}
-
-/// The largest positive vertex, texture or normal index accepted in a face.
-/// Larger ones cannot address anything (a mesh holds fewer than 2^32
-/// vertices) and would overflow tobj's index arithmetic.
-const MAX_OBJ_INDEX: i64 = 1 << 32;
-
-/// A reader between the OBJ text and tobj that refuses, with a message naming
-/// the line, face indices tobj does not handle safely: indices of 0, above
-/// [`MAX_OBJ_INDEX`], or relative (negative) indices reaching before the first
-/// element of their kind. (tobj turns those into indices near 2^64 and
-/// multiplies them unchecked, which panics in builds with overflow checks.)
-/// Everything else is passed through unchanged; tobj reports its own errors.
-struct IndexGuard<R> {
-    inner: R,
-    /// The current line, handed to tobj from `pos` on.
-    line: Vec<u8>,
-    pos: usize,
-    /// Lines read so far.
-    number: u64,
-    /// Positions, texture coordinates and normals declared so far.
-    declared: [i64; 3],
-    /// The first refused line's message.
-    error: Option<String>,
-}
-
-impl<R: std::io::BufRead> IndexGuard<R> {
-    fn new(inner: R) -> Self {
-        IndexGuard {
-            inner,
-            line: Vec::new(),
-            pos: 0,
-            number: 0,
-            declared: [0; 3],
-            error: None,
-        }
-    }
-
-    /// The refused line's error, if a line was refused.
-    fn check(&self, name: &str) -> Result<(), ConvertError> {
-        match &self.error {
-            Some(message) => Err(ConvertError::Input(format!("{name}: {message}"))),
-            None => Ok(()),
-        }
-    }
-
-    /// Checks one line; returns the reason it is refused.
-    fn refuse(&mut self, line: &[u8]) -> Option<String> {
-        // tobj refuses lines that are not UTF-8 itself.
-        let text = std::str::from_utf8(line).ok()?;
-        let mut words = text.split_whitespace();
-        match words.next()? {
-            "v" => self.declared[0] += 1,
-            "vt" => self.declared[1] += 1,
-            "vn" => self.declared[2] += 1,
-            "f" | "l" | "p" => {
-                const KINDS: [&str; 3] = ["vertex", "texture coordinate", "normal"];
-                for word in words {
-                    for (k, part) in word.split('/').take(3).enumerate() {
-                        // tobj refuses what is not an integer itself.
-                        let Ok(index) = part.parse::<i64>() else {
-                            continue;
-                        };
-                        let declared = self.declared[k];
-                        if index == 0 || index > MAX_OBJ_INDEX || index < -declared {
-                            return Some(format!(
-                                "line {}: {} index {index} is out of range ({declared} defined so far)",
-                                self.number, KINDS[k]
-                            ));
-                        }
-                    }
-                }
-            }
-            _ => {}
-        }
-        None
-    }
-}
-
-impl<R: std::io::BufRead> std::io::Read for IndexGuard<R> {
-    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        use std::io::BufRead;
-        let available = self.fill_buf()?;
-        let n = available.len().min(buf.len());
-        buf[..n].copy_from_slice(&available[..n]);
-        self.consume(n);
-        Ok(n)
-    }
-}
-
-impl<R: std::io::BufRead> std::io::BufRead for IndexGuard<R> {
-    fn fill_buf(&mut self) -> std::io::Result<&[u8]> {
-        if self.pos == self.line.len() && self.error.is_none() {
-            let mut line = std::mem::take(&mut self.line);
-            line.clear();
-            self.pos = 0;
-            if self.inner.read_until(b'\n', &mut line)? > 0 {
-                self.number += 1;
-                if let Some(message) = self.refuse(&line) {
-                    self.error = Some(message);
-                }
-            }
-            self.line = line;
-        }
-        if let Some(message) = &self.error {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::InvalidData,
-                message.clone(),
-            ));
-        }
-        Ok(&self.line[self.pos..])
-    }
-
-    fn consume(&mut self, amount: usize) {
-        self.pos = (self.pos + amount).min(self.line.len());
     }
 }
 

@@ -107,7 +107,7 @@ pub const CAMERA_VIEWS: usize = 6;
 /// What to verify and how many rays to cast.
 #[derive(Clone, Debug)]
 pub struct VerifyOptions {
-    /// The source mesh (OBJ).
+    /// The source mesh (any mesh format of [`crate::input`]) or point cloud.
     pub mesh: PathBuf,
     /// The `.vdag` (or `.vdag.zst`) file converted from it.
     pub dag: PathBuf,
@@ -116,6 +116,33 @@ pub struct VerifyOptions {
     pub rays: usize,
     /// Seed of the random rays and of the camera viewpoints.
     pub seed: u64,
+    /// Point clouds: the splat radius the cloud was converted with.
+    pub point_radius: f64,
+}
+
+/// The source of a verification: a mesh, or a point cloud.
+enum Source {
+    Mesh(Box<Mesh>),
+    Points(Box<dyn crate::input::PointSource>),
+}
+
+/// Opens the source in whichever format it is recognised as.
+fn open_source(path: &std::path::Path) -> Result<Source, ConvertError> {
+    let Some(format) = crate::input::detect(path) else {
+        return Err(ConvertError::Usage(format!(
+            "cannot tell the format of {} from its first bytes or its extension (one of {})",
+            path.display(),
+            crate::input::names()
+        )));
+    };
+    match crate::input::open(path, format, &crate::input::OpenOptions::default())? {
+        crate::input::Input::Mesh(m) => Ok(Source::Mesh(m)),
+        crate::input::Input::Points(p) => Ok(Source::Points(p)),
+        crate::input::Input::Voxels(_) => Err(ConvertError::Usage(format!(
+            "{}: verify checks meshes and point clouds, not voxel grids",
+            path.display()
+        ))),
+    }
 }
 
 /// One pass/fail criterion.
@@ -781,6 +808,16 @@ enum MeshAnswer {
 
 /// Verifies a conversion: see the module documentation.
 pub fn verify(opts: &VerifyOptions) -> Result<VerifyReport, ConvertError> {
+    match open_source(&opts.mesh)? {
+        Source::Mesh(mesh) => verify_mesh(opts, *mesh),
+        Source::Points(_) => Err(ConvertError::Usage(format!(
+            "{} is a point cloud: use verify_points",
+            opts.mesh.display()
+        ))),
+    }
+}
+
+fn verify_mesh(opts: &VerifyOptions, mesh: Mesh) -> Result<VerifyReport, ConvertError> {
     if !(1..=MAX_RAYS).contains(&opts.rays) {
         return Err(ConvertError::Usage(format!(
             "--rays {} is outside 1..={MAX_RAYS}",
@@ -797,7 +834,6 @@ pub fn verify(opts: &VerifyOptions) -> Result<VerifyReport, ConvertError> {
     let voxel = header.root_size / (1u64 << depth) as f64;
     let root_min = DVec3::from_array(header.root_min);
 
-    let mesh = Mesh::load_obj(&opts.mesh)?;
     let check = mesh.check()?;
     let placement_offset_voxels = match GridMapping::fit(check.min, check.max, depth) {
         Ok(m) => {
@@ -1018,7 +1054,25 @@ pub fn verify(opts: &VerifyOptions) -> Result<VerifyReport, ConvertError> {
 /// Runs `verify` and prints the report (text or JSON). Returns the exit
 /// status: 0 when every criterion holds, 1 otherwise.
 pub fn run(opts: &VerifyOptions, json: bool) -> Result<i32, ConvertError> {
-    let report = verify(opts)?;
+    let report = match open_source(&opts.mesh)? {
+        Source::Mesh(mesh) => verify_mesh(opts, *mesh)?,
+        Source::Points(cloud) => {
+            let report = crate::verify_points::verify_points(
+                &opts.mesh,
+                cloud,
+                &opts.dag,
+                opts.point_radius,
+            )?;
+            let text = if json {
+                serde_json::to_string_pretty(&report.json())
+                    .map_err(|e| ConvertError::Io(format!("cannot write the report: {e}")))?
+            } else {
+                report.render()
+            };
+            crate::output::print_stdout(&format!("{text}\n"))?;
+            return Ok(if report.passed() { 0 } else { 1 });
+        }
+    };
     // Through `print_stdout`: a closed pipe (`dagtool verify ... | head`) ends
     // the output quietly instead of panicking.
     let text = if json {

@@ -143,7 +143,7 @@ fn bad_arguments() {
         2,
     );
     assert!(msg.contains("cannot be used with"), "{msg}");
-    let unknown = write(d, "mesh.stl", "solid x\n");
+    let unknown = write(d, "mesh.fbx", "solid x\n");
     let msg = fails(&["convert", &unknown, "-o", out, "--depth", "5"], d, 2);
     assert!(msg.contains("--input-format"), "{msg}");
 }

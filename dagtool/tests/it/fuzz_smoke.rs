@@ -77,6 +77,15 @@ const TOKENS: &[&[u8]] = &[
     b"\r\n",
     b"VVOX",
     b"\xff\xfe",
+    b"element face 99\n",
+    b"property list uchar int vertex_indices\n",
+    b"solid ",
+    b"facet normal 0 0 1\n",
+    b"\"mode\":5,",
+    b"\"extensionsRequired\":[\"KHR_draco_mesh_compression\"],",
+    b"nTRN",
+    b"XYZI",
+    b"\xff\xff\xff\x7f",
 ];
 
 /// One mutation of `input`: a bit flip, a random or token insertion, a
@@ -205,7 +214,6 @@ fn voxel_list_harness_over_committed_and_mutated_lists() {
 
 #[test]
 fn obj_indices_tobj_cannot_handle_are_refused_with_the_line() {
-    use dagtool::mesh::Mesh;
     for (obj, expected) in [
         (
             "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/-5 2/-5 3/-5\n",
@@ -218,7 +226,7 @@ fn obj_indices_tobj_cannot_handle_are_refused_with_the_line() {
         ("v 0 0 0\nf -4 1 1\n", "line 2: vertex index -4"),
         ("v 0 0 0\nl 0 1\n", "line 2: vertex index 0"),
     ] {
-        let err = Mesh::load_obj_bytes(obj.as_bytes(), "t.obj")
+        let err = dagtool::input::obj::load_bytes(obj.as_bytes(), "t.obj")
             .unwrap_err()
             .to_string();
         assert!(err.contains(expected), "{err}");
@@ -227,10 +235,68 @@ fn obj_indices_tobj_cannot_handle_are_refused_with_the_line() {
     // Relative indices within range, and forward references, still load.
     let ok = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf -3/-1 -2/-1 -1/-1\nf 1 2 3\n";
     assert_eq!(
-        Mesh::load_obj_bytes(ok.as_bytes(), "t.obj")
+        dagtool::input::obj::load_bytes(ok.as_bytes(), "t.obj")
             .unwrap()
             .triangles
             .len(),
         2
     );
+}
+
+/// A small LAS (or LAZ) file in point format `format`, written by the `las`
+/// crate: a few points with colours where the format has them.
+pub fn las_bytes(format: u8, laz: bool) -> Vec<u8> {
+    let mut f = las::point::Format::new(format).unwrap();
+    f.is_compressed = laz;
+    let mut builder = las::Builder::from((1, 4));
+    builder.point_format = f;
+    let header = builder.into_header().unwrap();
+    let mut writer = las::Writer::new(std::io::Cursor::new(Vec::new()), header).unwrap();
+    {
+        for i in 0..7u16 {
+            let mut p = las::Point {
+                x: f64::from(i) * 0.5,
+                y: 1.0 - f64::from(i),
+                z: f64::from(i * i) * 0.01,
+                ..Default::default()
+            };
+            if f.has_color {
+                p.color = Some(las::Color::new(i * 9000, 65535 - i * 9000, 257 * i));
+            }
+            if f.has_gps_time {
+                p.gps_time = Some(f64::from(i));
+            }
+            if f.has_nir {
+                p.nir = Some(i);
+            }
+            writer.write_point(p).unwrap();
+        }
+    }
+    writer.into_inner().unwrap().into_inner()
+}
+
+/// `DAGTOOL_FUZZ_SCALE=N` runs N times the mutations (a longer campaign
+/// without libFuzzer; the default keeps `cargo test` fast).
+fn scale() -> usize {
+    std::env::var("DAGTOOL_FUZZ_SCALE")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+}
+
+#[test]
+fn input_format_harnesses_over_committed_and_mutated_files() {
+    let n = 300 * scale();
+    let runs = run("ply_import", fuzzing::ply_import, Vec::new(), n)
+        + run("stl_import", fuzzing::stl_import, Vec::new(), n)
+        + run("gltf_import", fuzzing::gltf_import, Vec::new(), n)
+        + run("vox_import", fuzzing::vox_import, Vec::new(), n)
+        + run("binvox_import", fuzzing::binvox_import, Vec::new(), n)
+        + run(
+            "las_import",
+            fuzzing::las_import,
+            vec![las_bytes(0, false), las_bytes(7, true), las_bytes(3, false)],
+            n / 2,
+        );
+    assert!(runs >= 5000, "{runs} runs");
 }

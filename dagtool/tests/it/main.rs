@@ -13,6 +13,7 @@ mod chunking;
 mod cli_errors;
 mod colors;
 mod commands;
+mod formats;
 mod fuzz_smoke;
 mod mapped_files;
 mod meshes;

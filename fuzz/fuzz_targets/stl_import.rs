@@ -1,0 +1,5 @@
+//! Fuzz target `stl_import`: runs `dagtool::fuzzing::stl_import` (see that function for
+//! the properties checked) on every input.
+#![no_main]
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| dagtool::fuzzing::stl_import(data));

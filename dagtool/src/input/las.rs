@@ -79,9 +79,71 @@ fn check_header<R: std::io::Read + std::io::Seek>(
         Some(end) if !compressed && end > len => Err(ConvertError::Input(format!(
             "{name}: the LAS file has {len} bytes but its {points} points end at byte {end} (truncated?)"
         ))),
-        Some(_) if compressed => check_chunk_table(head, raw.offset_to_point_data, len, name),
+        Some(_) if compressed => {
+            check_chunk_table(&mut head, raw.offset_to_point_data, len, name)?;
+            check_chunk_entries(&mut head, &raw, len, name)
+        }
         Some(_) => Ok(()),
     }
+}
+
+/// LAZ: the chunk table's entries, which the `laz` decompressor trusts: it
+/// sizes a buffer to the sum of the byte counts of the chunks it reads at
+/// once (a sum past `isize::MAX` is a capacity-overflow panic inside the
+/// crate), so the byte counts must add up to no more than the file holds and
+/// variable-size chunks to no more points than the header declares.
+fn check_chunk_entries<R: std::io::Read + std::io::Seek>(
+    mut file: R,
+    raw: &las::raw::Header,
+    len: u64,
+    name: &str,
+) -> Result<(), ConvertError> {
+    use std::io::SeekFrom;
+    let bad = |what: String| ConvertError::Input(format!("{name}: {what}"));
+    file.seek(SeekFrom::Start(u64::from(raw.header_size)))
+        .map_err(|e| bad(format!("cannot read the LAS records: {e}")))?;
+    let mut laszip = None;
+    for _ in 0..raw.number_of_variable_length_records {
+        let Ok(vlr) = las::raw::Vlr::read_from(&mut file, false) else {
+            // The `las` reader reports a damaged record itself.
+            return Ok(());
+        };
+        let user = vlr.user_id.split(|&b| b == 0).next().unwrap_or(&[]);
+        if user == laz::LazVlr::USER_ID.as_bytes() && vlr.record_id == laz::LazVlr::RECORD_ID {
+            laszip = Some(vlr);
+            break;
+        }
+    }
+    // Without its record the `las` reader refuses the file with its own error.
+    let Some(record) = laszip else { return Ok(()) };
+    let Ok(vlr) = laz::LazVlr::from_buffer(&record.data) else {
+        return Ok(());
+    };
+    file.seek(SeekFrom::Start(u64::from(raw.offset_to_point_data)))
+        .map_err(|e| bad(format!("cannot read the LAZ chunk table: {e}")))?;
+    let table = laz::laszip::ChunkTable::read_from(&mut file, &vlr)
+        .map_err(|e| bad(format!("cannot read the LAZ chunk table: {e}")))?;
+    let mut bytes = 0u64;
+    let mut points = 0u64;
+    for entry in table.as_ref() {
+        bytes = bytes.saturating_add(entry.byte_count);
+        points = points.saturating_add(entry.point_count);
+    }
+    if bytes > len {
+        return Err(bad(format!(
+            "the LAZ chunk table declares {bytes} bytes of chunks, more than the file's {len} bytes"
+        )));
+    }
+    let declared = match raw.large_file {
+        Some(lf) if raw.number_of_point_records == 0 => lf.number_of_point_records,
+        _ => u64::from(raw.number_of_point_records),
+    };
+    if vlr.uses_variable_size_chunks() && points > declared {
+        return Err(bad(format!(
+            "the LAZ chunk table declares {points} points in its chunks, more than the header's {declared}"
+        )));
+    }
+    Ok(())
 }
 
 /// LAZ: the chunk table's entry count, which the `laz` reader allocates

@@ -71,6 +71,9 @@ fn check_header<R: std::io::Read + std::io::Seek>(
         .checked_mul(points)
         .and_then(|b| b.checked_add(u64::from(raw.offset_to_point_data)));
     let compressed = raw.point_data_record_format & 0x80 != 0;
+    if let Some(evlr) = raw.evlr {
+        check_evlr(&mut head, evlr.start_of_first_evlr, len, name)?;
+    }
     match end {
         None => Err(ConvertError::Input(format!(
             "{name}: the LAS header declares {} points of {} bytes, more than a file can hold",
@@ -85,6 +88,43 @@ fn check_header<R: std::io::Read + std::io::Seek>(
         }
         Some(_) => Ok(()),
     }
+}
+
+/// LAS 1.4: the extended record the `las` reader reads at
+/// `start_of_first_evlr` must fit in the file, because the reader sizes its
+/// buffer from the record's 64-bit length before reading it (a mutated length
+/// asked for 52 TB).
+fn check_evlr<R: std::io::Read + std::io::Seek>(
+    mut file: R,
+    start: u64,
+    len: u64,
+    name: &str,
+) -> Result<(), ConvertError> {
+    // reserved u16, user ID [u8; 16], record ID u16, then the u64 length.
+    const LENGTH_AT: u64 = 20;
+    const HEADER: u64 = 60;
+    let mut word = [0u8; 8];
+    let readable = start
+        .checked_add(LENGTH_AT)
+        .filter(|&at| at.checked_add(8).is_some_and(|end| end <= len))
+        .is_some_and(|at| {
+            file.seek(std::io::SeekFrom::Start(at)).is_ok() && file.read_exact(&mut word).is_ok()
+        });
+    if !readable {
+        // The `las` reader reports the missing record itself.
+        return Ok(());
+    }
+    let length = u64::from_le_bytes(word);
+    if start
+        .checked_add(HEADER)
+        .and_then(|e| e.checked_add(length))
+        .is_none_or(|end| end > len)
+    {
+        return Err(ConvertError::Input(format!(
+            "{name}: the extended variable-length record at byte {start} declares {length} bytes, more than the file's {len} bytes hold"
+        )));
+    }
+    Ok(())
 }
 
 /// LAZ: the chunk table's entries, which the `laz` decompressor trusts: it
@@ -119,6 +159,15 @@ fn check_chunk_entries<R: std::io::Read + std::io::Seek>(
     let Ok(vlr) = laz::LazVlr::from_buffer(&record.data) else {
         return Ok(());
     };
+    // The decompressor asserts that the points the `las` reader asks for
+    // (records of the header's length) are whole records of its items.
+    let items: u64 = vlr.items().iter().map(|item| u64::from(item.size())).sum();
+    if items != u64::from(raw.point_data_record_length) {
+        return Err(bad(format!(
+            "the LAZ record's items make points of {items} bytes, but the header says {}",
+            raw.point_data_record_length
+        )));
+    }
     file.seek(SeekFrom::Start(u64::from(raw.offset_to_point_data)))
         .map_err(|e| bad(format!("cannot read the LAZ chunk table: {e}")))?;
     let table = laz::laszip::ChunkTable::read_from(&mut file, &vlr)

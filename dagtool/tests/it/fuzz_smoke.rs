@@ -299,4 +299,18 @@ fn input_format_harnesses_over_committed_and_mutated_files() {
             n / 2,
         );
     assert!(runs >= 5000, "{runs} runs");
+    // Found by libFuzzer: a LAS 1.4 extended record declaring 52 TB.
+    let evlr = std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../fuzz/regressions/las_import/evlr-length-52TB.las"),
+    )
+    .unwrap();
+    let err = dagtool::input::las::load_bytes(&evlr, "e.las")
+        .err()
+        .expect("the 52 TB record was accepted")
+        .to_string();
+    assert!(
+        err.starts_with("e.las: the extended variable-length record at byte "),
+        "{err}"
+    );
 }

@@ -86,7 +86,7 @@ const GROUP_RAYS: usize = 16;
 
 /// Groups in a packet.
 const GROUPS: usize = PACKET_RAYS / GROUP_RAYS;
-// `simd::groups_meet` tests the groups' beams four to a vector.
+// `avx2::groups_meet` tests the groups' beams four to a vector.
 const _: () = assert!(GROUPS == 4);
 
 /// The bits of the first group in a mask of rays.
@@ -145,7 +145,7 @@ pub(crate) struct Beam {
 
 /// The inverse directions of a packet's group beams by axis and group
 /// (`inv_lo[a][g]` for group `g`), for the vector test of all groups at once
-/// (`simd::groups_meet`); the rest of their beams is the packet's.
+/// (`avx2::groups_meet`); the rest of their beams is the packet's.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct GroupBeams {
     pub(crate) inv_lo: [[f64; GROUPS]; 3],
@@ -218,7 +218,7 @@ impl Beam {
     fn children_met(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
         #[cfg(target_arch = "x86_64")]
         if crate::cpu::available() {
-            // SAFETY: `simd::available` found AVX2.
+            // SAFETY: `cpu::available` found AVX2.
             let met = unsafe { avx2::beam_children_met(self, pos, size * 0.5) };
             return unmirror(met, neg) & mask;
         }
@@ -372,7 +372,7 @@ impl PacketLanes {
 }
 
 /// The comparisons that make a ray's chain of children in a node (see
-/// `tracer::chain`), one bit per ray of a packet.
+/// `walk::chain`), one bit per ray of a packet.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct ChainTests {
     /// The ray's segment meets the node: `t_enter <= t_exit`.
@@ -388,7 +388,7 @@ pub(crate) struct ChainTests {
 
 impl ChainTests {
     /// Whether `a`'s mid-plane crossing comes before `b`'s (`a != b`), in the
-    /// order of `tracer::CHAIN`: by parameter, ties to the higher axis.
+    /// order of `tables::CHAIN`: by parameter, ties to the higher axis.
     #[inline(always)]
     fn crosses_before(&self, a: usize, b: usize) -> u64 {
         match (a, b) {
@@ -483,7 +483,7 @@ pub(crate) fn chain_tests(planes: [[f32; 3]; 3], lanes: &PacketLanes, rays: u64)
 const SUBTREE_SLOTS: usize = 4;
 
 /// Rays that may join a packet, found by [`scan_ray`] (one ray) or
-/// `simd::scan_for_packet` (eight): how many of the scanned rays, from the
+/// `avx2::scan_for_packet` (eight): how many of the scanned rays, from the
 /// first, may join, and over those the ranges of `|d_a|` (empty ranges when
 /// none may).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -657,11 +657,11 @@ impl Tracer<'_> {
             let scanned = if step == GROUP_RAYS {
                 let group: &[Ray; GROUP_RAYS] =
                     rays[n..n + GROUP_RAYS].try_into().expect("a group of rays");
-                // SAFETY: `simd::available` found AVX2.
+                // SAFETY: `cpu::available` found AVX2.
                 unsafe { avx2::scan_group(group, first) }
             } else if step == 8 {
                 let eight: &[Ray; 8] = rays[n..n + 8].try_into().expect("eight rays");
-                // SAFETY: `simd::available` found AVX2.
+                // SAFETY: `cpu::available` found AVX2.
                 unsafe { avx2::scan_for_packet(eight, first) }
             } else {
                 scan_ray(&rays[n], first)
@@ -885,7 +885,7 @@ impl Tracer<'_> {
                 #[cfg(target_arch = "x86_64")]
                 if let Some(group_beams) = &group_beams {
                     // SAFETY: `group_beams` is only made where
-                    // `simd::available` found AVX2.
+                    // `cpu::available` found AVX2.
                     let met = unsafe { avx2::groups_meet(&beam, group_beams, pos, size) };
                     for g in 0..GROUPS {
                         if met >> g & 1 != 0 {
@@ -946,7 +946,7 @@ impl Tracer<'_> {
         if let Some(four) = rays.first_chunk::<4>()
             && crate::cpu::available()
         {
-            // SAFETY: `simd::available` found AVX2.
+            // SAFETY: `cpu::available` found AVX2.
             return unsafe { crate::simd::setup4(self, four, prepared) };
         }
         let _ = (rays, prepared);
@@ -1341,7 +1341,7 @@ impl Tracer<'_> {
         .map(|p| p.to_array());
         #[cfg(target_arch = "x86_64")]
         let tests = if crate::cpu::available() {
-            // SAFETY: `simd::available` found AVX2.
+            // SAFETY: `cpu::available` found AVX2.
             unsafe { avx2::chain_tests(planes, lanes, rays) }
         } else {
             chain_tests(planes, lanes, rays)

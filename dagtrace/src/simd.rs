@@ -40,7 +40,7 @@
 //! - The six reads of eight lanes' words a step (header, two stack words,
 //!   `CHAIN` and `FIRST` entries, pointer) are AVX2 gather instructions, or,
 //!   on processors whose gathers are microcoded and slow (AMD's Zen 1 and 2:
-//!   [`slow_gathers`]), eight scalar loads put together ([`gather`],
+//!   [`crate::cpu::slow_gathers`]), eight scalar loads put together ([`gather`],
 //!   [`crate::Gathers`]). Both are compiled (`run`'s `LOADS`), and the tests
 //!   check both on every processor with AVX2.
 //! - What is rare or branchy stays scalar, done by the tracer's own functions
@@ -61,6 +61,18 @@
 //! vector of all-ones lanes); `run` is shared through [`StepLanes`]. The
 //! tests run every path, eight and sixteen lanes (where the processor has
 //! AVX-512), gather instruction and scalar loads, against `trace()`.
+//!
+//! The lanes gather the DAG's words themselves, but what the words mean (the
+//! child mask in a header, where a child's reference lies and how wide it
+//! is) comes from `node::lanes`, the vector forms of `node`, the tracer's
+//! one decoding module; references the vector step cannot read are read by
+//! `node::Level::reference_or_fault` in the scalar tail.
+//!
+//! Left to do: `step` and `step_wide` still repeat each other's ~250 lines
+//! in 256- and 512-bit intrinsics. Writing them once (a lane-width trait
+//! whose two forms wrap the intrinsics, inlined into `run` and `run_wide`)
+//! was not done because the sixteen-lane path can only be tested and timed
+//! on a processor with AVX-512, which the machine of this change lacked.
 
 use std::arch::x86_64::*;
 
@@ -292,7 +304,7 @@ impl<const W: usize> Group<W> {
 struct Abandon;
 
 /// [`Tracer::trace_lanes`] with eight rays to a vector. Call only where
-/// [`available`] is true.
+/// [`crate::cpu::available`] is true.
 pub(crate) fn trace_lanes(
     tracer: &Tracer<'_>,
     rays: &[Ray],
@@ -1132,7 +1144,7 @@ unsafe fn step<const LOADS: bool>(
 
 /// The part of each lane's segment `[tmin, tmax]` inside a box whose lower and
 /// upper planes the lane crosses at `t_lo` and `t_hi`: its entry and exit, as
-/// the scalar traversal computes them (`max`/`min` of tracer.rs are
+/// the scalar traversal computes them (`max`/`min` of walk.rs are
 /// `_mm256_max_ps`/`_mm256_min_ps` exactly: the second operand unless the
 /// first is strictly greater/less).
 #[inline]
@@ -1380,7 +1392,7 @@ unsafe fn step_wide<const LOADS: bool>(
             plane(_mm512_add_ps(pz, size), oz, iz),
         ];
         // `segment`: `_mm512_max_ps`/`_mm512_min_ps` are `max`/`min` of
-        // tracer.rs exactly, as their 256-bit forms are.
+        // walk.rs exactly, as their 256-bit forms are.
         let enter = _mm512_max_ps(
             _mm512_max_ps(_mm512_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
             ldf_wide!(g.tmin),

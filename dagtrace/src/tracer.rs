@@ -56,7 +56,7 @@ impl Tracer<'_> {
         }
         #[cfg(target_arch = "x86_64")]
         if crate::cpu::available() {
-            // SAFETY: `simd::available` found the features.
+            // SAFETY: `cpu::available` found the features.
             return unsafe { self.trace_runs_avx2(rays, hits) };
         }
         self.trace_runs::<true>(rays, hits)
@@ -80,7 +80,7 @@ impl Tracer<'_> {
     ) -> Result<(), TraceError> {
         #[cfg(target_arch = "x86_64")]
         if crate::cpu::available() {
-            // SAFETY: `simd::available` found the features.
+            // SAFETY: `cpu::available` found the features.
             return unsafe { self.trace_image_avx2(rays, hits, grid) };
         }
         self.trace_image(rays, hits, grid)

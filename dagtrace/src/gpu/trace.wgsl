@@ -3,7 +3,7 @@
 // Preceded by a preamble generated from dagtrace/src/gpu/layout.rs (shared
 // structs, constants, bindings and `load_word`).
 //
-// The traversal is the CPU tracer's (dagtrace/src/tracer.rs), with the same
+// The traversal is the CPU tracer's (dagtrace/src/walk.rs), with the same
 // plane arithmetic and tie rules, so that both find the same cell:
 // - the ray is in grid space, mirrored so that every direction component is
 //   non-negative (bit i of `octant` set when axis i is mirrored); cell

@@ -24,17 +24,23 @@
 
 pub mod camera;
 pub mod cli;
+#[cfg(target_arch = "x86_64")]
+mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
 mod grid;
 pub mod lit;
+mod node;
 mod packet;
 mod parallel;
 pub mod render;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 mod tables;
+#[cfg(test)]
+mod testing;
 mod tracer;
+mod walk;
 
 pub use dagfmt::batch::{Hit, Ray};
-pub use tracer::{Gathers, Lanes, TraceError, Tracer};
+pub use walk::{Gathers, Lanes, TraceError, Tracer};

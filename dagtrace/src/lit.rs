@@ -31,7 +31,7 @@
 
 use crate::camera::{CameraFrame, TILE};
 use crate::render::BACKGROUND;
-use crate::tracer::{TraceError, Tracer};
+use crate::walk::{TraceError, Tracer};
 use dagfmt::batch::{Hit, Ray};
 use rayon::prelude::*;
 

@@ -64,8 +64,12 @@
 
 use glam::{Vec3A, Vec4};
 
+#[cfg(target_arch = "x86_64")]
+mod avx2;
+
+use crate::node::child_mask;
 use crate::tables::FIRST;
-use crate::tracer::{
+use crate::walk::{
     CHILD_STEPS, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, Tracer, Walk, max, min,
     prefetch, prefetch_range,
 };
@@ -82,7 +86,7 @@ const GROUP_RAYS: usize = 16;
 
 /// Groups in a packet.
 const GROUPS: usize = PACKET_RAYS / GROUP_RAYS;
-// `simd::groups_meet` tests the groups' beams four to a vector.
+// `avx2::groups_meet` tests the groups' beams four to a vector.
 const _: () = assert!(GROUPS == 4);
 
 /// The bits of the first group in a mask of rays.
@@ -141,7 +145,7 @@ pub(crate) struct Beam {
 
 /// The inverse directions of a packet's group beams by axis and group
 /// (`inv_lo[a][g]` for group `g`), for the vector test of all groups at once
-/// (`simd::groups_meet`); the rest of their beams is the packet's.
+/// (`avx2::groups_meet`); the rest of their beams is the packet's.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct GroupBeams {
     pub(crate) inv_lo: [[f64; GROUPS]; 3],
@@ -213,9 +217,9 @@ impl Beam {
     #[inline(always)]
     fn children_met(&self, mask: u8, pos: [f64; 3], size: f64, neg: usize) -> u8 {
         #[cfg(target_arch = "x86_64")]
-        if crate::simd::available() {
-            // SAFETY: `simd::available` found AVX2.
-            let met = unsafe { crate::simd::beam_children_met(self, pos, size * 0.5) };
+        if crate::cpu::available() {
+            // SAFETY: `cpu::available` found AVX2.
+            let met = unsafe { avx2::beam_children_met(self, pos, size * 0.5) };
             return unmirror(met, neg) & mask;
         }
         self.children_met_scalar(mask, pos, size, neg)
@@ -368,7 +372,7 @@ impl PacketLanes {
 }
 
 /// The comparisons that make a ray's chain of children in a node (see
-/// `tracer::chain`), one bit per ray of a packet.
+/// `walk::chain`), one bit per ray of a packet.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct ChainTests {
     /// The ray's segment meets the node: `t_enter <= t_exit`.
@@ -384,7 +388,7 @@ pub(crate) struct ChainTests {
 
 impl ChainTests {
     /// Whether `a`'s mid-plane crossing comes before `b`'s (`a != b`), in the
-    /// order of `tracer::CHAIN`: by parameter, ties to the higher axis.
+    /// order of `tables::CHAIN`: by parameter, ties to the higher axis.
     #[inline(always)]
     fn crosses_before(&self, a: usize, b: usize) -> u64 {
         match (a, b) {
@@ -479,7 +483,7 @@ pub(crate) fn chain_tests(planes: [[f32; 3]; 3], lanes: &PacketLanes, rays: u64)
 const SUBTREE_SLOTS: usize = 4;
 
 /// Rays that may join a packet, found by [`scan_ray`] (one ray) or
-/// `simd::scan_for_packet` (eight): how many of the scanned rays, from the
+/// `avx2::scan_for_packet` (eight): how many of the scanned rays, from the
 /// first, may join, and over those the ranges of `|d_a|` (empty ranges when
 /// none may).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -636,7 +640,7 @@ impl Tracer<'_> {
             prefetch_range(next);
         }
         #[cfg(target_arch = "x86_64")]
-        let vectors = crate::simd::available();
+        let vectors = crate::cpu::available();
         #[cfg(not(target_arch = "x86_64"))]
         let vectors = false;
         while n < limit {
@@ -653,12 +657,12 @@ impl Tracer<'_> {
             let scanned = if step == GROUP_RAYS {
                 let group: &[Ray; GROUP_RAYS] =
                     rays[n..n + GROUP_RAYS].try_into().expect("a group of rays");
-                // SAFETY: `simd::available` found AVX2.
-                unsafe { crate::simd::scan_group(group, first) }
+                // SAFETY: `cpu::available` found AVX2.
+                unsafe { avx2::scan_group(group, first) }
             } else if step == 8 {
                 let eight: &[Ray; 8] = rays[n..n + 8].try_into().expect("eight rays");
-                // SAFETY: `simd::available` found AVX2.
-                unsafe { crate::simd::scan_for_packet(eight, first) }
+                // SAFETY: `cpu::available` found AVX2.
+                unsafe { avx2::scan_for_packet(eight, first) }
             } else {
                 scan_ray(&rays[n], first)
             };
@@ -720,7 +724,7 @@ impl Tracer<'_> {
     #[inline(never)]
     pub(crate) fn trace_packet(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if crate::simd::available() {
+        if crate::cpu::available() {
             // SAFETY: checked.
             return unsafe { self.trace_packet_avx2(rays, hits, shape) };
         }
@@ -772,10 +776,11 @@ impl Tracer<'_> {
         let Ok(header) = self.levels[0].header(0, 0) else {
             return false;
         };
+        let mask = child_mask(header);
         walk.frames[0] = BeamFrame {
             word: 0,
-            mask: header as u8,
-            remaining: beam.children_met(header as u8, [0.0; 3], root_size, neg),
+            mask,
+            remaining: beam.children_met(mask, [0.0; 3], root_size, neg),
             pos: [0.0; 3],
         };
         walk.level = Some(0);
@@ -796,7 +801,7 @@ impl Tracer<'_> {
             return false;
         }
         #[cfg(target_arch = "x86_64")]
-        let group_beams = crate::simd::available().then(|| GroupBeams::of(&groups));
+        let group_beams = crate::cpu::available().then(|| GroupBeams::of(&groups));
         #[cfg(not(target_arch = "x86_64"))]
         let group_beams: Option<GroupBeams> = None;
         // The set-up of every ray, as `Tracer::setup` does it, with what the
@@ -880,8 +885,8 @@ impl Tracer<'_> {
                 #[cfg(target_arch = "x86_64")]
                 if let Some(group_beams) = &group_beams {
                     // SAFETY: `group_beams` is only made where
-                    // `simd::available` found AVX2.
-                    let met = unsafe { crate::simd::groups_meet(&beam, group_beams, pos, size) };
+                    // `cpu::available` found AVX2.
+                    let met = unsafe { avx2::groups_meet(&beam, group_beams, pos, size) };
                     for g in 0..GROUPS {
                         if met >> g & 1 != 0 {
                             rays |= GROUP_MASK << (g * GROUP_RAYS);
@@ -939,9 +944,9 @@ impl Tracer<'_> {
     fn set_up_four(&self, rays: &[Ray], prepared: &mut [Prepared; 4]) -> u32 {
         #[cfg(target_arch = "x86_64")]
         if let Some(four) = rays.first_chunk::<4>()
-            && crate::simd::available()
+            && crate::cpu::available()
         {
-            // SAFETY: `simd::available` found AVX2.
+            // SAFETY: `cpu::available` found AVX2.
             return unsafe { crate::simd::setup4(self, four, prepared) };
         }
         let _ = (rays, prepared);
@@ -1094,7 +1099,7 @@ impl Tracer<'_> {
         hits: &mut [Hit],
     ) -> Result<(), ()> {
         let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
-        let mask = section.header(level, word).map_err(|_| ())? as u8;
+        let mask = child_mask(section.header(level, word).map_err(|_| ())?);
         let half = size * 0.5;
         // Offsets of the planes from the packet's origin, as `resume` and
         // `brick` compute them (so the same roundings).
@@ -1116,7 +1121,7 @@ impl Tracer<'_> {
             let t_enter = max(t_lo.max_element(), q.tmin);
             let t_exit = min(t_hi.min_element(), q.tmax);
             if t_enter <= t_exit {
-                let chain = crate::tracer::chain(neg, t_enter, t_exit, d_mid * q.inv_dir) & mask;
+                let chain = crate::walk::chain(neg, t_enter, t_exit, d_mid * q.inv_dir) & mask;
                 chains[n & (PACKET_RAYS - 1)] = (r as u8, chain);
                 n += usize::from(chain != 0);
                 union |= chain;
@@ -1132,8 +1137,10 @@ impl Tracer<'_> {
         while children != 0 {
             let c = children.trailing_zeros() as usize & 7;
             children &= children - 1;
-            let rank = (mask & ((1u8 << c) - 1)).count_ones();
-            let pointer = section.pointer(level, word, rank).map_err(|_| ())?;
+            let pointer = section
+                .child(level, word, mask, c as u32)
+                .map_err(|_| ())?
+                .node;
             prefetch(leaves.bytes, pointer as usize * 8);
             pointers[c] = pointer;
         }
@@ -1263,7 +1270,7 @@ impl Tracer<'_> {
     fn packet_hit(
         &self,
         walk: &Walk,
-        cell: crate::tracer::Cell,
+        cell: crate::walk::Cell,
         path: &[Frame],
         frames: &[SubtreeFrame],
         node: Option<Frame>,
@@ -1323,7 +1330,7 @@ impl Tracer<'_> {
         let header = self.levels[usize::from(level) & (LEVEL_SLOTS - 1)]
             .header(level, word)
             .map_err(|_| ())?;
-        let mask = header as u8;
+        let mask = child_mask(header);
         // The plane offsets are common to the packet (one origin); the same
         // operations as `resume`, so the same roundings.
         let planes = [
@@ -1333,9 +1340,9 @@ impl Tracer<'_> {
         ]
         .map(|p| p.to_array());
         #[cfg(target_arch = "x86_64")]
-        let tests = if crate::simd::available() {
-            // SAFETY: `simd::available` found AVX2.
-            unsafe { crate::simd::chain_tests(planes, lanes, rays) }
+        let tests = if crate::cpu::available() {
+            // SAFETY: `cpu::available` found AVX2.
+            unsafe { avx2::chain_tests(planes, lanes, rays) }
         } else {
             chain_tests(planes, lanes, rays)
         };
@@ -1365,8 +1372,10 @@ impl Tracer<'_> {
                 children &= children - 1;
                 // The children are read soon, and most miss the cache: start
                 // all their reads now.
-                let rank = (mask & ((1u8 << c) - 1)).count_ones();
-                let pointer = section.pointer(level, word, rank).map_err(|_| ())?;
+                let pointer = section
+                    .child(level, word, mask, c as u32)
+                    .map_err(|_| ())?
+                    .node;
                 prefetch(child_bytes, pointer as usize * record);
                 frame.rays[c] = through_all[(c ^ neg) & 7];
                 frame.pointers[c] = pointer;
@@ -1467,10 +1476,10 @@ impl Tracer<'_> {
                 frame.pos[1] + (m >> 1 & 1) as f64 * half,
                 frame.pos[2] + (m >> 2 & 1) as f64 * half,
             ];
-            let rank = (frame.mask & ((1u8 << child) - 1)).count_ones();
             let pointer = self.levels[l]
-                .pointer(level, frame.word, rank)
-                .map_err(|_| ())?;
+                .child(level, frame.word, frame.mask, u32::from(child))
+                .map_err(|_| ())?
+                .node;
             if level + 1 == beam_level {
                 let path = listed * LEVEL_SLOTS;
                 for (slot, f) in paths[path..path + l + 1].iter_mut().zip(&walk.frames) {
@@ -1492,10 +1501,11 @@ impl Tracer<'_> {
             let header = self.levels[l + 1]
                 .header(level + 1, pointer)
                 .map_err(|_| ())?;
+            let mask = child_mask(header);
             walk.frames[l + 1] = BeamFrame {
                 word: pointer,
-                mask: header as u8,
-                remaining: beam.children_met(header as u8, pos, half, neg),
+                mask,
+                remaining: beam.children_met(mask, pos, half, neg),
                 pos,
             };
             walk.level = Some(level + 1);
@@ -1508,7 +1518,7 @@ impl Tracer<'_> {
 mod tests {
     use super::*;
     use crate::camera::Camera;
-    use crate::tracer::Setup;
+    use crate::walk::Setup;
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
@@ -1838,7 +1848,7 @@ mod tests {
                         for &enter in &values {
                             for &exit in values.iter().filter(|&&e| e >= enter) {
                                 let t_mid = Vec3A::new(x, y, z);
-                                let expected = crate::tracer::chain(neg, enter, exit, t_mid);
+                                let expected = crate::walk::chain(neg, enter, exit, t_mid);
                                 let m = [x, y, z];
                                 let bit = |b: bool| u64::from(b);
                                 let tests = ChainTests {
@@ -1890,14 +1900,13 @@ mod tests {
             assert_eq!(met, beam.children_met_scalar(mask, pos, size, neg));
             // The packet's four group tests at once, on the same cube.
             #[cfg(target_arch = "x86_64")]
-            if crate::simd::available() {
+            if crate::cpu::available() {
                 let groups: [Beam; GROUPS] = std::array::from_fn(|g| Beam {
                     inv_hi: beam.inv_hi.map(|v| v * (1.0 + 0.05 * g as f64)),
                     ..beam
                 });
                 // SAFETY: checked.
-                let met =
-                    unsafe { crate::simd::groups_meet(&beam, &GroupBeams::of(&groups), pos, size) };
+                let met = unsafe { avx2::groups_meet(&beam, &GroupBeams::of(&groups), pos, size) };
                 for (g, group) in groups.iter().enumerate() {
                     assert_eq!(met >> g & 1 == 1, group.meets(pos, size), "group {g}");
                 }

@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use crate::grid;
-use crate::tracer::{TraceError, Tracer};
+use crate::walk::{TraceError, Tracer};
 use dagfmt::batch::{Hit, Ray};
 
 /// The fewest rays handed to one rayon task: enough to amortise scheduling.

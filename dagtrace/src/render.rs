@@ -1,7 +1,7 @@
 //! Shading traced primary rays into an RGB image.
 
 use crate::camera::CameraFrame;
-use crate::tracer::{TraceError, Tracer};
+use crate::walk::{TraceError, Tracer};
 use dagfmt::batch::Hit;
 
 /// How hit pixels are coloured.

@@ -40,7 +40,7 @@
 //! - The six reads of eight lanes' words a step (header, two stack words,
 //!   `CHAIN` and `FIRST` entries, pointer) are AVX2 gather instructions, or,
 //!   on processors whose gathers are microcoded and slow (AMD's Zen 1 and 2:
-//!   [`slow_gathers`]), eight scalar loads put together ([`gather`],
+//!   [`crate::cpu::slow_gathers`]), eight scalar loads put together ([`gather`],
 //!   [`crate::Gathers`]). Both are compiled (`run`'s `LOADS`), and the tests
 //!   check both on every processor with AVX2.
 //! - What is rare or branchy stays scalar, done by the tracer's own functions
@@ -61,15 +61,28 @@
 //! vector of all-ones lanes); `run` is shared through [`StepLanes`]. The
 //! tests run every path, eight and sixteen lanes (where the processor has
 //! AVX-512), gather instruction and scalar loads, against `trace()`.
+//!
+//! The lanes gather the DAG's words themselves, but what the words mean (the
+//! child mask in a header, where a child's reference lies and how wide it
+//! is) comes from `node::lanes`, the vector forms of `node`, the tracer's
+//! one decoding module; references the vector step cannot read are read by
+//! `node::Level::reference_or_fault` in the scalar tail.
+//!
+//! Left to do: `step` and `step_wide` still repeat each other's ~250 lines
+//! in 256- and 512-bit intrinsics. Writing them once (a lane-width trait
+//! whose two forms wrap the intrinsics, inlined into `run` and `run_wide`)
+//! was not done because the sixteen-lane path can only be tested and timed
+//! on a processor with AVX-512, which the machine of this change lacked.
 
 use std::arch::x86_64::*;
 
 use dagfmt::batch::{Hit, Ray};
 use glam::{BVec3A, Vec3A};
 
-use crate::packet::{Beam, ChainTests, GroupBeams, PacketLanes, ScannedRays};
+use crate::cpu::wide_available;
+use crate::node::lanes::{Avx2, Avx512, HEADER_SHIFT, LEAF_SHIFT};
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
-use crate::tracer::{
+use crate::walk::{
     Begun, Cell, Frame, LEVEL_SLOTS, Prepared, Stack, TINY_DIRECTION, TraceError, Tracer, Walk,
     prefetch_address,
 };
@@ -84,7 +97,7 @@ const WIDE: usize = 16;
 /// two's at d10 (a 1 MB DAG, every one of eight alternating rounds slower).
 const WIDE_GROUPS: usize = 2;
 /// Groups of [`W`] rays in flight, taking turns, for DAGs larger than
-/// [`crate::tracer::SMALL_DAG_BYTES`].
+/// [`crate::walk::SMALL_DAG_BYTES`].
 const GROUPS: usize = 4;
 /// Groups of [`W`] rays in flight for the small DAGs, which mostly stay in
 /// the caches.
@@ -106,91 +119,6 @@ mod state {
     pub const FOUND: i32 = 4;
     /// No occupied cell on the ray.
     pub const MISS: i32 = 5;
-}
-
-/// Whether this processor runs the vector traversal: AVX2, and the
-/// instructions every processor with AVX2 also has that the batch path is
-/// compiled with (`#[target_feature]`: BMI1/2, POPCNT, LZCNT, FMA; no fused
-/// arithmetic is written, so FMA only allows the encoding). Looked up once.
-#[inline(always)]
-pub(crate) fn available() -> bool {
-    // 0: not known yet, 1: no, 2: yes. One load on the hot paths that ask
-    // (inlined: a call there would make the caller save its vector
-    // registers around it).
-    match AVAILABLE.load(std::sync::atomic::Ordering::Relaxed) {
-        0 => detect(),
-        v => v == 2,
-    }
-}
-
-/// [`available`]'s answer, once known.
-static AVAILABLE: std::sync::atomic::AtomicU8 = std::sync::atomic::AtomicU8::new(0);
-
-/// Looks the features of [`available`] up and records the answer.
-#[cold]
-#[inline(never)]
-fn detect() -> bool {
-    let yes = std::is_x86_feature_detected!("avx2")
-        && std::is_x86_feature_detected!("bmi1")
-        && std::is_x86_feature_detected!("bmi2")
-        && std::is_x86_feature_detected!("popcnt")
-        && std::is_x86_feature_detected!("lzcnt")
-        && std::is_x86_feature_detected!("fma");
-    AVAILABLE.store(1 + u8::from(yes), std::sync::atomic::Ordering::Relaxed);
-    yes
-}
-
-/// Whether this processor runs the sixteen-lane traversal: [`available`],
-/// and AVX-512 with the subsets [`step_wide`] is compiled with (F, BW, VL,
-/// DQ, CD: every processor with AVX-512 since Intel's Skylake-SP and AMD's
-/// Zen 4). Looked up once.
-#[inline]
-pub(crate) fn wide_available() -> bool {
-    static WIDE_AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *WIDE_AVAILABLE.get_or_init(|| {
-        available()
-            && std::is_x86_feature_detected!("avx512f")
-            && std::is_x86_feature_detected!("avx512bw")
-            && std::is_x86_feature_detected!("avx512vl")
-            && std::is_x86_feature_detected!("avx512dq")
-            && std::is_x86_feature_detected!("avx512cd")
-    })
-}
-
-/// Whether this processor's gather instructions are slow enough that the
-/// vector lanes read faster with scalar loads ([`crate::Gathers::Auto`]):
-/// AMD's families 17h (Zen, Zen+ and Zen 2) and 19h (Zen 3 and Zen 4), and
-/// Hygon's family 18h (built on Zen). Family 17h's `vpgatherdd` of eight
-/// 32-bit words is microcoded: on a Zen 1 EPYC it took 20–30 cycles a gather
-/// where eight loads put together took 6–10 (microbenchmark). Family 19h
-/// gathers faster, but the loads still won there: 0.955 of the time of d12
-/// random rays on a Zen 4 EPYC (101 alternating rounds), 0.983 on a Zen 3.
-/// Intel's cores keep the instruction (scalar loads took 1.05–1.07 of its
-/// time on a Xeon), and so do processors not measured (AMD's family 1Ah,
-/// Zen 5, among them). The measurements: dagtrace/BENCHMARKS.md.
-pub(crate) fn slow_gathers() -> bool {
-    // (`cpuid` exists on every x86-64 processor; leaves 0 and 1 always do.)
-    let (vendor, signature) = (__cpuid(0), __cpuid(1));
-    let mut name = [0u8; 12];
-    name[..4].copy_from_slice(&vendor.ebx.to_le_bytes());
-    name[4..8].copy_from_slice(&vendor.edx.to_le_bytes());
-    name[8..].copy_from_slice(&vendor.ecx.to_le_bytes());
-    slow_gathers_on(&name, signature.eax)
-}
-
-/// [`slow_gathers`] for the processor with vendor string `vendor` (cpuid
-/// leaf 0) and signature `eax` (leaf 1).
-fn slow_gathers_on(vendor: &[u8; 12], eax: u32) -> bool {
-    let base_family = (eax >> 8) & 0xf;
-    let family = if base_family == 0xf {
-        base_family + ((eax >> 20) & 0xff)
-    } else {
-        base_family
-    };
-    matches!(
-        (vendor, family),
-        (b"AuthenticAMD", 0x17 | 0x19) | (b"HygonGenuine", 0x18)
-    )
 }
 
 /// Entries of the per-level tables, more than the most stored levels (20):
@@ -376,7 +304,7 @@ impl<const W: usize> Group<W> {
 struct Abandon;
 
 /// [`Tracer::trace_lanes`] with eight rays to a vector. Call only where
-/// [`available`] is true.
+/// [`crate::cpu::available`] is true.
 pub(crate) fn trace_lanes(
     tracer: &Tracer<'_>,
     rays: &[Ray],
@@ -701,473 +629,6 @@ fn refill<const N: usize>(
     }
 }
 
-/// `packet::scan_ray` of eight rays at once: how many of `rays`, from the
-/// first, may join the packet that `first` starts, with the ranges of their
-/// `|d_a|`, computed with the same `f32` operations (so the same packets).
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[target_feature(enable = "avx2")]
-pub(crate) unsafe fn scan_for_packet(rays: &[Ray; 8], first: &Ray) -> ScannedRays {
-    // SAFETY: the caller's.
-    let eight = unsafe { scan_eight(rays, first) };
-    eight.fold(eight.joins.trailing_ones() as usize)
-}
-
-/// [`scan_for_packet`] of sixteen rays (a group of a packet), in two
-/// vectors of eight folded once.
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[target_feature(enable = "avx2")]
-pub(crate) unsafe fn scan_group(rays: &[Ray; 16], first: &Ray) -> ScannedRays {
-    // SAFETY: the caller's.
-    if let Some(all) = unsafe { scan_whole_group(rays, first) } {
-        return all;
-    }
-    let (a, b) = rays.split_at(8);
-    // SAFETY: the caller's.
-    let (a, b) = unsafe {
-        (
-            scan_eight(a.try_into().expect("eight"), first),
-            scan_eight(b.try_into().expect("eight"), first),
-        )
-    };
-    let len = (a.joins | b.joins << 8).trailing_ones() as usize;
-    if len <= 8 {
-        return a.fold(len);
-    }
-    // The first eight all join: the rays of both that join, as one vector.
-    let keep = lanes_below(len - 8);
-    let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
-    let lo: [__m256; 3] =
-        std::array::from_fn(|i| _mm256_min_ps(a.m[i], or_else(b.m[i], f32::INFINITY)));
-    let hi: [__m256; 3] = std::array::from_fn(|i| _mm256_max_ps(a.m[i], or_else(b.m[i], 0.0)));
-    ScannedRays {
-        len,
-        lo: Vec3A::new(fold_min(lo[0]), fold_min(lo[1]), fold_min(lo[2])),
-        hi: Vec3A::new(fold_max(hi[0]), fold_max(hi[1]), fold_max(hi[2])),
-    }
-}
-
-/// [`scan_group`] where all sixteen rays may join, the usual case, or `None`
-/// (then the ray-by-ray scan decides). Sufficient tests on the sixteen rays
-/// at once, each ray's first 32 bytes one vector, with no transpose:
-/// - their starts and direction signs equal `first`'s (the OR of the rays'
-///   XORs with it);
-/// - their `|d_a|` ranges, as the integer minimum and maximum of the bits
-///   (the order of non-negative floats), with all components finite, none
-///   above 2^60 (so every `|d|²` is finite), and the smallest component of
-///   all above 10^-6 times the largest of all (so each ray's is above 10^-6
-///   times its own largest: `packet::scan_ray`'s test, rounding being
-///   monotonic);
-/// - the same level.
-///
-/// When they hold, every ray passes `scan_ray`, and the ranges are the
-/// same numbers.
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-unsafe fn scan_whole_group(rays: &[Ray; 16], first: &Ray) -> Option<ScannedRays> {
-    // SAFETY: the first 32 bytes of each ray lie inside it (the assertion on
-    // `Ray`'s layout below).
-    let words = |r: &Ray| unsafe { _mm256_loadu_si256(std::ptr::from_ref(r).cast::<__m256i>()) };
-    let f = words(first);
-    let magnitude = _mm256_set1_epi32(0x7fff_ffff);
-    let mut differ = _mm256_setzero_si256();
-    let mut lo = magnitude;
-    let mut hi = _mm256_setzero_si256();
-    for r in rays {
-        let v = words(r);
-        differ = _mm256_or_si256(differ, _mm256_xor_si256(v, f));
-        let m = _mm256_and_si256(v, magnitude);
-        lo = _mm256_min_epi32(lo, m);
-        hi = _mm256_max_epi32(hi, m);
-    }
-    // Lanes: origin x, y, z, direction x, y, z, tmin, tmax. The start must
-    // be equal, the direction's sign bits too.
-    let sign = i32::MIN;
-    let must_match = _mm256_setr_epi32(-1, -1, -1, sign, sign, sign, -1, -1);
-    let mut level = true;
-    for r in rays {
-        level &= r.level == first.level;
-    }
-    if _mm256_testz_si256(differ, must_match) == 0 || !level {
-        return None;
-    }
-    // SAFETY: 32 bytes either way, and any bits are a `u32`.
-    let lanes = |v: __m256i| -> [u32; 8] { unsafe { std::mem::transmute(v) } };
-    let (lo, hi) = (lanes(lo), lanes(hi));
-    let (lo, hi) = ([lo[3], lo[4], lo[5]], [hi[3], hi[4], hi[5]]);
-    // 2^60: squares and their sum stay far below f32::MAX (2^128).
-    let bound = (2f32.powi(60)).to_bits();
-    if hi.iter().any(|&h| h > bound) {
-        return None;
-    }
-    let lo = Vec3A::from_array(lo.map(f32::from_bits));
-    let hi = Vec3A::from_array(hi.map(f32::from_bits));
-    (lo.min_element() > hi.max_element() * 1e-6).then_some(ScannedRays { len: 16, lo, hi })
-}
-
-/// All ones in the lanes below `len` (at most 8).
-#[inline]
-#[target_feature(enable = "avx2")]
-fn lanes_below(len: usize) -> __m256 {
-    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(len as i32), lane))
-}
-
-/// Eight rays scanned for a packet ([`scan_eight`]), not yet folded.
-#[derive(Clone, Copy)]
-struct ScannedEight {
-    /// Bit `k`: ray `k` may join.
-    joins: u32,
-    /// `|d_a|` per axis, per lane.
-    m: [__m256; 3],
-}
-
-impl ScannedEight {
-    /// The scan of the first `len` rays (all of which join).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn fold(&self, len: usize) -> ScannedRays {
-        if len == 0 {
-            return ScannedRays::NONE;
-        }
-        // Over the rays that join: the ranges, the others replaced by the
-        // neutral values.
-        let keep = lanes_below(len);
-        let or_else = |v: __m256, other: f32| _mm256_blendv_ps(_mm256_set1_ps(other), v, keep);
-        let m = self.m;
-        ScannedRays {
-            len,
-            lo: Vec3A::new(
-                fold_min(or_else(m[0], f32::INFINITY)),
-                fold_min(or_else(m[1], f32::INFINITY)),
-                fold_min(or_else(m[2], f32::INFINITY)),
-            ),
-            hi: Vec3A::new(
-                fold_max(or_else(m[0], 0.0)),
-                fold_max(or_else(m[1], 0.0)),
-                fold_max(or_else(m[2], 0.0)),
-            ),
-        }
-    }
-}
-
-/// The per-ray tests of `packet::scan_ray` for eight rays, in vectors.
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-unsafe fn scan_eight(rays: &[Ray; 8], first: &Ray) -> ScannedEight {
-    // SAFETY: the caller's.
-    let [o0, o1, o2, d0, d1, d2, t0, t1] = unsafe { ray_words(rays) };
-    let start_bits = [o0, o1, o2, t0, t1];
-    let first_start = [
-        first.origin[0],
-        first.origin[1],
-        first.origin[2],
-        first.tmin,
-        first.tmax,
-    ];
-    let d_bits = [d0, d1, d2];
-    let splat = |v: f32| _mm256_set1_epi32(v.to_bits() as i32);
-    // The same origin and bounds bit for bit, and the same signs of the
-    // direction.
-    let mut differ = _mm256_setzero_si256();
-    for (b, f) in start_bits.iter().zip(first_start) {
-        differ = _mm256_or_si256(differ, _mm256_xor_si256(*b, splat(f)));
-    }
-    let mut signs = _mm256_setzero_si256();
-    for (b, f) in d_bits.iter().zip(first.dir) {
-        signs = _mm256_or_si256(signs, _mm256_xor_si256(*b, splat(f)));
-    }
-    differ = _mm256_or_si256(differ, _mm256_srli_epi32::<31>(signs));
-    let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(differ, _mm256_setzero_si256()));
-    let d = d_bits.map(|b| _mm256_castsi256_ps(b));
-    let m = d.map(|d| _mm256_andnot_ps(_mm256_set1_ps(-0.0), d));
-    // `length_squared`: (x² + y²) + z².
-    let d2 = _mm256_add_ps(
-        _mm256_add_ps(_mm256_mul_ps(d[0], d[0]), _mm256_mul_ps(d[1], d[1])),
-        _mm256_mul_ps(d[2], d[2]),
-    );
-    // With finite components (an infinite or NaN one fails the `d2` test),
-    // the smallest and largest component in any order.
-    let smallest = _mm256_min_ps(m[0], _mm256_min_ps(m[1], m[2]));
-    let largest = _mm256_max_ps(m[0], _mm256_max_ps(m[1], m[2]));
-    let regular = _mm256_and_ps(
-        _mm256_cmp_ps::<_CMP_GT_OQ>(smallest, _mm256_mul_ps(largest, _mm256_set1_ps(1e-6))),
-        _mm256_cmp_ps::<_CMP_LT_OQ>(d2, _mm256_set1_ps(f32::INFINITY)),
-    );
-    // The same level: for full-depth rays (the usual case) only `None`s.
-    let mut level = 0u32;
-    match first.level {
-        None => {
-            for (k, r) in rays.iter().enumerate() {
-                level |= u32::from(r.level.is_none()) << k;
-            }
-        }
-        Some(l) => {
-            for (k, r) in rays.iter().enumerate() {
-                level |= u32::from(r.level == Some(l)) << k;
-            }
-        }
-    }
-    ScannedEight {
-        joins: _mm256_movemask_ps(_mm256_and_ps(same, regular)) as u32 & level,
-        m,
-    }
-}
-
-// A `Ray` (`#[repr(C)]`) starts with its origin, direction, `tmin` and
-// `tmax`, eight 4-byte words: the layout `ray_words` reads.
-const _: () = assert!(
-    std::mem::offset_of!(Ray, origin) == 0
-        && std::mem::offset_of!(Ray, dir) == 12
-        && std::mem::offset_of!(Ray, tmin) == 24
-        && std::mem::offset_of!(Ray, tmax) == 28
-        && std::mem::size_of::<Ray>() >= 32
-);
-
-/// The origin (3), direction (3), `tmin` and `tmax` words of eight rays,
-/// one vector per field, lane `k` from `rays[k]`. Eight loads of a ray's
-/// first 32 bytes and a transpose: with a gather per field, the scan took
-/// 12 % of the time of a d12 tiled frame on Zen 4 (whose gathers are slow),
-/// without them 6 %.
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-unsafe fn ray_words(rays: &[Ray; 8]) -> [__m256i; 8] {
-    // SAFETY: the first 32 bytes of each ray lie inside it (the assertion
-    // on `Ray`'s layout above).
-    let row = |k: usize| unsafe {
-        _mm256_castsi256_ps(_mm256_loadu_si256(
-            std::ptr::from_ref(&rays[k]).cast::<__m256i>(),
-        ))
-    };
-    let r: [__m256; 8] = std::array::from_fn(row);
-    let t = [
-        _mm256_unpacklo_ps(r[0], r[1]),
-        _mm256_unpackhi_ps(r[0], r[1]),
-        _mm256_unpacklo_ps(r[2], r[3]),
-        _mm256_unpackhi_ps(r[2], r[3]),
-        _mm256_unpacklo_ps(r[4], r[5]),
-        _mm256_unpackhi_ps(r[4], r[5]),
-        _mm256_unpacklo_ps(r[6], r[7]),
-        _mm256_unpackhi_ps(r[6], r[7]),
-    ];
-    let u = [
-        _mm256_shuffle_ps::<0x44>(t[0], t[2]),
-        _mm256_shuffle_ps::<0xee>(t[0], t[2]),
-        _mm256_shuffle_ps::<0x44>(t[1], t[3]),
-        _mm256_shuffle_ps::<0xee>(t[1], t[3]),
-        _mm256_shuffle_ps::<0x44>(t[4], t[6]),
-        _mm256_shuffle_ps::<0xee>(t[4], t[6]),
-        _mm256_shuffle_ps::<0x44>(t[5], t[7]),
-        _mm256_shuffle_ps::<0xee>(t[5], t[7]),
-    ];
-    [
-        _mm256_permute2f128_ps::<0x20>(u[0], u[4]),
-        _mm256_permute2f128_ps::<0x20>(u[1], u[5]),
-        _mm256_permute2f128_ps::<0x20>(u[2], u[6]),
-        _mm256_permute2f128_ps::<0x20>(u[3], u[7]),
-        _mm256_permute2f128_ps::<0x31>(u[0], u[4]),
-        _mm256_permute2f128_ps::<0x31>(u[1], u[5]),
-        _mm256_permute2f128_ps::<0x31>(u[2], u[6]),
-        _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
-    ]
-    .map(|v| _mm256_castps_si256(v))
-}
-
-/// The smallest of the eight lanes (none NaN).
-#[inline]
-#[target_feature(enable = "avx2")]
-fn fold_min(v: __m256) -> f32 {
-    let v = _mm_min_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let v = _mm_min_ps(v, _mm_movehl_ps(v, v));
-    _mm_cvtss_f32(_mm_min_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
-}
-
-/// The largest of the eight lanes (none NaN).
-#[inline]
-#[target_feature(enable = "avx2")]
-fn fold_max(v: __m256) -> f32 {
-    let v = _mm_max_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
-    let v = _mm_max_ps(v, _mm_movehl_ps(v, v));
-    _mm_cvtss_f32(_mm_max_ps(v, _mm_shuffle_ps::<0b01>(v, v)))
-}
-
-/// `packet::Beam::children_met` before its mirroring: bit `m` set when some
-/// line of `beam` may meet the mirrored child `m` of the node of edge
-/// `2 * half` at `pos`. The same `f64` operations as the scalar form, four
-/// children to a vector (so the same answers).
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-pub(crate) unsafe fn beam_children_met(beam: &Beam, pos: [f64; 3], half: f64) -> u32 {
-    let (origin, inv_lo, inv_hi) = (beam.origin, beam.inv_lo, beam.inv_hi);
-    let (tmin, tmax, margin) = (beam.tmin, beam.tmax, beam.margin);
-    let v = |a: [f64; 3]| _mm256_setr_pd(a[0], a[1], a[2], 0.0);
-    let (origin, inv_lo, inv_hi, pos) = (v(origin), v(inv_lo), v(inv_hi), v(pos));
-    let (margin, half) = (_mm256_set1_pd(margin), _mm256_set1_pd(half));
-    let mid = _mm256_add_pd(pos, half);
-    let lo0 = _mm256_sub_pd(_mm256_sub_pd(pos, margin), origin);
-    let lo1 = _mm256_sub_pd(_mm256_sub_pd(mid, margin), origin);
-    let hi0 = _mm256_sub_pd(_mm256_add_pd(mid, margin), origin);
-    let hi1 = _mm256_sub_pd(_mm256_add_pd(_mm256_add_pd(mid, half), margin), origin);
-    let zero = _mm256_setzero_pd();
-    // `Beam::near` and `Beam::far`: the inverse direction by the plane's side.
-    let near = |lo: __m256d| {
-        let ahead = _mm256_cmp_pd::<_CMP_GE_OQ>(lo, zero);
-        _mm256_mul_pd(lo, _mm256_blendv_pd(inv_hi, inv_lo, ahead))
-    };
-    let far = |hi: __m256d| {
-        let ahead = _mm256_cmp_pd::<_CMP_GE_OQ>(hi, zero);
-        _mm256_mul_pd(hi, _mm256_blendv_pd(inv_lo, inv_hi, ahead))
-    };
-    let (n0, n1, f0, f1) = (near(lo0), near(lo1), far(hi0), far(hi1));
-    // Per row of four children (z fixed): lane k has x = k & 1, y = k >> 1.
-    // `unpacklo` gives [a.x, b.x, a.z, b.z], `unpackhi` [a.y, b.y, .., ..].
-    let (nxz, ny) = (_mm256_unpacklo_pd(n0, n1), _mm256_unpackhi_pd(n0, n1));
-    let (fxz, fy) = (_mm256_unpacklo_pd(f0, f1), _mm256_unpackhi_pd(f0, f1));
-    let nx = _mm256_permute4x64_pd::<0b01_00_01_00>(nxz);
-    let fx = _mm256_permute4x64_pd::<0b01_00_01_00>(fxz);
-    let ny = _mm256_permute4x64_pd::<0b01_01_00_00>(ny);
-    let fy = _mm256_permute4x64_pd::<0b01_01_00_00>(fy);
-    let (tmin, tmax) = (_mm256_set1_pd(tmin), _mm256_set1_pd(tmax));
-    // `max(a, b)` is `a > b ? a : b` and `min(a, b)` is `a < b ? a : b`,
-    // like the scalar closures (no NaN here).
-    let enter_xy = _mm256_max_pd(tmin, nx);
-    let exit_xy = _mm256_min_pd(tmax, fx);
-    let row = |nz: __m256d, fz: __m256d| {
-        let enter = _mm256_max_pd(enter_xy, _mm256_max_pd(ny, nz));
-        let exit = _mm256_min_pd(exit_xy, _mm256_min_pd(fy, fz));
-        _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32
-    };
-    let low = row(
-        _mm256_permute4x64_pd::<0b10_10_10_10>(nxz),
-        _mm256_permute4x64_pd::<0b10_10_10_10>(fxz),
-    );
-    let high = row(
-        _mm256_permute4x64_pd::<0b11_11_11_11>(nxz),
-        _mm256_permute4x64_pd::<0b11_11_11_11>(fxz),
-    );
-    low | high << 4
-}
-
-/// `packet::Beam::meets` for a packet's four group beams at once, which
-/// differ from the packet's `beam` only in their inverse directions
-/// (`groups`), against the cube of edge `size` at `pos`: bit `g` set when
-/// group `g`'s beam may meet it. The same `f64` operations, and like
-/// `f64::max` and `f64::min` a NaN plane parameter is passed over.
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-pub(crate) unsafe fn groups_meet(
-    beam: &Beam,
-    groups: &GroupBeams,
-    pos: [f64; 3],
-    size: f64,
-) -> u32 {
-    let (origin, margin) = (beam.origin, beam.margin);
-    let (inv_lo, inv_hi) = (&groups.inv_lo, &groups.inv_hi);
-    let load = |v: &[f64; 4]| _mm256_setr_pd(v[0], v[1], v[2], v[3]);
-    let mut enter = _mm256_set1_pd(beam.tmin);
-    let mut exit = _mm256_set1_pd(beam.tmax);
-    for a in 0..3 {
-        let lo = pos[a] - margin - origin[a];
-        let hi = pos[a] + size + margin - origin[a];
-        let near = if lo >= 0.0 { &inv_lo[a] } else { &inv_hi[a] };
-        let far = if hi >= 0.0 { &inv_hi[a] } else { &inv_lo[a] };
-        let near = _mm256_mul_pd(_mm256_set1_pd(lo), load(near));
-        let far = _mm256_mul_pd(_mm256_set1_pd(hi), load(far));
-        // `maxpd(a, b)` is `a > b ? a : b`: the second operand when either
-        // is NaN, so the running bound stays, as with `f64::max`.
-        enter = _mm256_max_pd(near, enter);
-        exit = _mm256_min_pd(far, exit);
-    }
-    _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(enter, exit)) as u32
-}
-
-/// `packet::chain_tests` eight rays at a time, with the same `f32`
-/// operations (so the same tests bit for bit).
-///
-/// # Safety
-///
-/// The processor must have AVX2.
-#[inline]
-#[target_feature(enable = "avx2")]
-pub(crate) unsafe fn chain_tests(
-    planes: [[f32; 3]; 3],
-    lanes: &PacketLanes,
-    rays: u64,
-) -> ChainTests {
-    let splat = |p: [f32; 3]| {
-        [
-            _mm256_set1_ps(p[0]),
-            _mm256_set1_ps(p[1]),
-            _mm256_set1_ps(p[2]),
-        ]
-    };
-    let [d_lo, d_mid, d_hi] = [splat(planes[0]), splat(planes[1]), splat(planes[2])];
-    let mut tests = ChainTests::default();
-    let mut groups = rays;
-    while groups != 0 {
-        let g = (groups.trailing_zeros() / 8) as usize & 7;
-        groups &= !(0xff << (8 * g));
-        // Rays 8g..8g + 8.
-        macro_rules! load {
-            ($v:expr) => {{
-                let v: &[f32; 64] = &$v;
-                // SAFETY: floats 8g..8g + 8 of the 64 in `v` (g < 8).
-                unsafe { _mm256_loadu_ps(v.as_ptr().add(8 * g)) }
-            }};
-        }
-        let inv = [
-            load!(lanes.inv[0]),
-            load!(lanes.inv[1]),
-            load!(lanes.inv[2]),
-        ];
-        let t_lo: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_lo[a], inv[a]));
-        let t_mid: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_mid[a], inv[a]));
-        let t_hi: [__m256; 3] = std::array::from_fn(|a| _mm256_mul_ps(d_hi[a], inv[a]));
-        let (enter, exit) = segment(t_lo, t_hi, load!(lanes.tmin), load!(lanes.tmax));
-        let shift = 8 * g;
-        macro_rules! bits {
-            ($m:expr) => {
-                u64::from(_mm256_movemask_ps($m) as u8) << shift
-            };
-        }
-        tests.inside |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(enter, exit));
-        for (a, &t) in t_mid.iter().enumerate() {
-            tests.first[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t, enter));
-            tests.before_exit[a] |= bits!(_mm256_cmp_ps::<_CMP_LE_OS>(t, exit));
-        }
-        tests.order[0] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[1]));
-        tests.order[1] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[0], t_mid[2]));
-        tests.order[2] |= bits!(_mm256_cmp_ps::<_CMP_LT_OS>(t_mid[1], t_mid[2]));
-    }
-    tests.inside &= rays;
-    tests
-}
-
 /// [`Tracer::setup`] of four rays at once, in `f64` vectors with the very
 /// same operations, for the usual rays: full depth, ordered finite bounds,
 /// finite origin not far from the cube, and no direction component small
@@ -1375,7 +836,7 @@ impl<const N: usize> StepOut<N> {
             lanes &= lanes - 1;
             let level = self.level[lane] as usize & (LEVEL_SLOTS - 1);
             let mut fault = None;
-            let pointer = tracer.levels[level].pointer_or_fault(
+            let reference = tracer.levels[level].reference_or_fault(
                 level as u8,
                 self.word[lane] as u32,
                 self.rank[lane] as u32,
@@ -1384,7 +845,7 @@ impl<const N: usize> StepOut<N> {
             if fault.is_some() {
                 return Err(Abandon);
             }
-            g.target[lane] = pointer as i32;
+            g.target[lane] = reference.node as i32;
         }
         Ok(())
     }
@@ -1467,7 +928,7 @@ unsafe fn step<const LOADS: bool>(
         let header = gather::<LOADS>(
             zero,
             base,
-            _mm256_add_epi32(by_level(&offsets, level), _mm256_slli_epi32::<2>(target)),
+            _mm256_add_epi32(by_level(&offsets, level), Avx2::header_at(target)),
             visit,
         );
         let (ox, oy, oz) = (ldf!(g.ox), ldf!(g.oy), ldf!(g.oz));
@@ -1512,7 +973,7 @@ unsafe fn step<const LOADS: bool>(
             _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
             visit,
         );
-        let node_mask = _mm256_and_si256(header, byte);
+        let node_mask = Avx2::child_mask(header);
         let visited = _mm256_and_si256(_mm256_and_si256(chain, node_mask), nonempty);
         let mut word = blend(ldi!(g.word), target, visit);
         let mut mask = blend(ldi!(g.mask), node_mask, visit);
@@ -1579,13 +1040,8 @@ unsafe fn step<const LOADS: bool>(
         let rank = popcount8(_mm256_and_si256(mask, _mm256_sub_epi32(bit, one)));
         let fast_limit = by_level(&fast_limits, level);
         let width = by_level(&widths, level);
-        // The low `width` bytes: all of them for width 4 (a shift by 32 gives 0).
-        let pointer_mask =
-            _mm256_sub_epi32(_mm256_sllv_epi32(one, _mm256_slli_epi32::<3>(width)), one);
-        let at = _mm256_add_epi32(
-            _mm256_add_epi32(_mm256_slli_epi32::<2>(word), _mm256_set1_epi32(4)),
-            _mm256_mullo_epi32(rank, width),
-        );
+        let pointer_mask = Avx2::reference_mask(width);
+        let at = Avx2::reference_at(word, rank, width);
         let cut = _mm256_cmpgt_epi32(at, fast_limit);
         let fast = _mm256_andnot_si256(cut, choose);
         let pointer = _mm256_and_si256(
@@ -1627,7 +1083,11 @@ unsafe fn step<const LOADS: bool>(
         let child_level = _mm256_add_epi32(level, one);
         let at_stop = _mm256_and_si256(choose, _mm256_cmpeq_epi32(child_level, ldi!(g.stop)));
         // What to prefetch: the child's header, or the brick's leaf mask.
-        let scale = _mm256_blendv_epi8(_mm256_set1_epi32(2), _mm256_set1_epi32(3), at_stop);
+        let scale = _mm256_blendv_epi8(
+            _mm256_set1_epi32(HEADER_SHIFT),
+            _mm256_set1_epi32(LEAF_SHIFT),
+            at_stop,
+        );
         sti!(
             out.fetch,
             _mm256_add_epi32(
@@ -1684,12 +1144,17 @@ unsafe fn step<const LOADS: bool>(
 
 /// The part of each lane's segment `[tmin, tmax]` inside a box whose lower and
 /// upper planes the lane crosses at `t_lo` and `t_hi`: its entry and exit, as
-/// the scalar traversal computes them (`max`/`min` of tracer.rs are
+/// the scalar traversal computes them (`max`/`min` of walk.rs are
 /// `_mm256_max_ps`/`_mm256_min_ps` exactly: the second operand unless the
 /// first is strictly greater/less).
 #[inline]
 #[target_feature(enable = "avx2")]
-fn segment(t_lo: [__m256; 3], t_hi: [__m256; 3], tmin: __m256, tmax: __m256) -> (__m256, __m256) {
+pub(crate) fn segment(
+    t_lo: [__m256; 3],
+    t_hi: [__m256; 3],
+    tmin: __m256,
+    tmax: __m256,
+) -> (__m256, __m256) {
     let enter = _mm256_max_ps(
         _mm256_max_ps(_mm256_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
         tmin,
@@ -1905,10 +1370,7 @@ unsafe fn step_wide<const LOADS: bool>(
         let header = gather_wide::<LOADS>(
             zero,
             base,
-            _mm512_add_epi32(
-                by_level_wide(&offsets, level),
-                _mm512_slli_epi32::<2>(target),
-            ),
+            _mm512_add_epi32(by_level_wide(&offsets, level), Avx512::header_at(target)),
             visit,
         );
         let (ox, oy, oz) = (ldf_wide!(g.ox), ldf_wide!(g.oy), ldf_wide!(g.oz));
@@ -1930,7 +1392,7 @@ unsafe fn step_wide<const LOADS: bool>(
             plane(_mm512_add_ps(pz, size), oz, iz),
         ];
         // `segment`: `_mm512_max_ps`/`_mm512_min_ps` are `max`/`min` of
-        // tracer.rs exactly, as their 256-bit forms are.
+        // walk.rs exactly, as their 256-bit forms are.
         let enter = _mm512_max_ps(
             _mm512_max_ps(_mm512_max_ps(t_lo[0], t_lo[1]), t_lo[2]),
             ldf_wide!(g.tmin),
@@ -1959,7 +1421,7 @@ unsafe fn step_wide<const LOADS: bool>(
             _mm512_or_si512(_mm512_slli_epi32::<9>(neg), key),
             visit,
         );
-        let node_mask = _mm512_and_si512(header, byte);
+        let node_mask = Avx512::child_mask(header);
         let visited = _mm512_maskz_and_epi32(nonempty, chain, node_mask);
         let mut word = _mm512_mask_blend_epi32(visit, ldi_wide!(g.word), target);
         let mut mask = _mm512_mask_blend_epi32(visit, ldi_wide!(g.mask), node_mask);
@@ -2022,13 +1484,8 @@ unsafe fn step_wide<const LOADS: bool>(
         let rank = popcount8_wide(_mm512_and_si512(mask, _mm512_sub_epi32(bit, one)));
         let fast_limit = by_level_wide(&fast_limits, level);
         let width = by_level_wide(&widths, level);
-        // The low `width` bytes: all of them for width 4 (a shift by 32 gives 0).
-        let pointer_mask =
-            _mm512_sub_epi32(_mm512_sllv_epi32(one, _mm512_slli_epi32::<3>(width)), one);
-        let at = _mm512_add_epi32(
-            _mm512_add_epi32(_mm512_slli_epi32::<2>(word), _mm512_set1_epi32(4)),
-            _mm512_mullo_epi32(rank, width),
-        );
+        let pointer_mask = Avx512::reference_mask(width);
+        let at = Avx512::reference_at(word, rank, width);
         let cut = _mm512_cmpgt_epi32_mask(at, fast_limit);
         let fast = choose & !cut;
         let pointer = _mm512_and_si512(
@@ -2072,7 +1529,11 @@ unsafe fn step_wide<const LOADS: bool>(
         let child_level = _mm512_add_epi32(level, one);
         let at_stop = choose & _mm512_cmpeq_epi32_mask(child_level, ldi_wide!(g.stop));
         // What to prefetch: the child's header, or the brick's leaf mask.
-        let scale = _mm512_mask_blend_epi32(at_stop, _mm512_set1_epi32(2), _mm512_set1_epi32(3));
+        let scale = _mm512_mask_blend_epi32(
+            at_stop,
+            _mm512_set1_epi32(HEADER_SHIFT),
+            _mm512_set1_epi32(LEAF_SHIFT),
+        );
         sti_wide!(
             out.fetch,
             _mm512_add_epi32(
@@ -2210,34 +1671,14 @@ unsafe fn gather_wide<const LOADS: bool>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
-    use crate::tracer::Setup;
-    use crate::tracer::tests::Rng;
+    use crate::cpu::available;
+    use crate::testing::Rng;
+    use crate::walk::Setup;
     use dagfmt::Dag;
     use dagfmt::builder::DagBuilder;
     use dagfmt::layout::AttributeKind;
-
-    /// The processors whose gathers the lanes replace by scalar loads, by
-    /// their cpuid signatures (leaf 1, eax).
-    #[test]
-    fn slow_gathers_are_amd_families_17h_and_19h_and_hygon() {
-        let (amd, intel, hygon) = (b"AuthenticAMD", b"GenuineIntel", b"HygonGenuine");
-        for (vendor, eax, slow, what) in [
-            (amd, 0x0080_0f12, true, "EPYC 7001, Zen"),
-            (amd, 0x0080_0f82, true, "Ryzen 2000, Zen+"),
-            (amd, 0x0083_0f10, true, "EPYC 7002, Zen 2"),
-            (amd, 0x00a0_0f11, true, "EPYC 7003, Zen 3"),
-            (amd, 0x00a1_0f11, true, "EPYC 9004, Zen 4"),
-            (amd, 0x00b0_0f20, false, "Zen 5"),
-            (amd, 0x0060_0f20, false, "family 15h, Bulldozer line"),
-            (hygon, 0x0090_0f11, true, "Hygon Dhyana"),
-            (intel, 0x0005_0654, false, "Xeon, Skylake-SP"),
-            (intel, 0x0006_06a6, false, "Xeon, Ice Lake-SP"),
-        ] {
-            assert_eq!(slow_gathers_on(vendor, eax), slow, "{what}");
-        }
-    }
 
     /// The pointers the gathers read (`at <= fast_limit`) lie inside their
     /// section, and their 32-bit loads inside the file, whatever lies after
@@ -2283,7 +1724,7 @@ mod tests {
     }
 
     /// A float that is often one of the values the set-up treats specially.
-    fn special(rng: &mut Rng, usual: f32) -> f32 {
+    pub(crate) fn special(rng: &mut Rng, usual: f32) -> f32 {
         match rng.next() % 16 {
             0 => 0.0,
             1 => -0.0,
@@ -2295,134 +1736,6 @@ mod tests {
             7 => usual * 1e6,
             _ => usual,
         }
-    }
-
-    /// `scan_for_packet` against `packet::scan_ray` ray by ray, on runs of
-    /// eight rays that mostly share their start, with the odd field changed.
-    #[test]
-    fn vector_packet_scan_is_the_scan_of_each_ray() {
-        if !available() {
-            eprintln!("skipped: this processor has no AVX2");
-            return;
-        }
-        let mut rng = Rng(0x5ca7);
-        let mut lengths = [0usize; 17];
-        for case in 0..40_000 {
-            let first = Ray {
-                origin: [0, 1, 2].map(|_| rng.range(-3.0, 3.0)),
-                dir: [0, 1, 2].map(|_| rng.range(-1.0, 1.0)),
-                tmin: rng.range(0.0, 1.0),
-                tmax: if rng.next().is_multiple_of(2) {
-                    f32::INFINITY
-                } else {
-                    10.0
-                },
-                level: (case % 5 == 0).then_some(7),
-            };
-            let rare = 16 + rng.next() % 128;
-            let rays: [Ray; 16] = std::array::from_fn(|_| {
-                let mut r = first;
-                r.dir = first.dir.map(|d| d + rng.range(-0.05, 0.05));
-                match rng.next() % rare {
-                    0 => r.origin[(rng.next() % 3) as usize] += 1e-6,
-                    1 => r.tmin = special(&mut rng, r.tmin),
-                    2 => r.tmax = special(&mut rng, r.tmax),
-                    3 => r.level = Some((rng.next() % 4) as u8),
-                    4 => r.level = None,
-                    5 | 6 => {
-                        let a = (rng.next() % 3) as usize;
-                        r.dir[a] = special(&mut rng, r.dir[a]);
-                    }
-                    7 => {
-                        let a = (rng.next() % 3) as usize;
-                        r.dir[a] = -r.dir[a];
-                    }
-                    _ => {}
-                }
-                r
-            });
-            // The scan ray by ray, for the first `n` rays.
-            let scalar = |n: usize| {
-                let mut scalar = ScannedRays::NONE;
-                for r in &rays[..n] {
-                    let one = crate::packet::scan_ray(r, &rays[0]);
-                    if one.len == 0 {
-                        break;
-                    }
-                    scalar = ScannedRays {
-                        len: scalar.len + 1,
-                        lo: scalar.lo.min(one.lo),
-                        hi: scalar.hi.max(one.hi),
-                    };
-                }
-                scalar
-            };
-            let bits = |s: &ScannedRays| {
-                (
-                    s.len,
-                    s.lo.to_array().map(f32::to_bits),
-                    s.hi.to_array().map(f32::to_bits),
-                )
-            };
-            let eight: &[Ray; 8] = rays[..8].try_into().unwrap();
-            // SAFETY: AVX2 was found above.
-            let (vector, group) = unsafe {
-                (
-                    scan_for_packet(eight, &rays[0]),
-                    scan_group(&rays, &rays[0]),
-                )
-            };
-            assert_eq!(bits(&vector), bits(&scalar(8)), "{rays:?}");
-            assert_eq!(bits(&group), bits(&scalar(16)), "{rays:?}");
-            lengths[group.len] += 1;
-        }
-        // Every length occurs, all sixteen joining most often.
-        assert!(lengths.iter().all(|&n| n > 50), "{lengths:?}");
-        assert!(lengths[16] == *lengths.iter().max().unwrap(), "{lengths:?}");
-    }
-
-    /// `chain_tests` against `packet::chain_tests` (four rays to a vector)
-    /// on random packets, planes and ray sets, ties included.
-    #[test]
-    fn vector_chain_tests_are_the_chain_tests_of_four_ray_vectors() {
-        if !available() {
-            eprintln!("skipped: this processor has no AVX2");
-            return;
-        }
-        let mut rng = Rng(0xc4a1);
-        let mut inside = 0u32;
-        for _ in 0..20_000 {
-            let mut lanes = PacketLanes::default();
-            for i in 0..64 {
-                for a in 0..3 {
-                    // Equal inverses now and then: ties between the axes.
-                    lanes.inv[a][i] = if rng.next().is_multiple_of(8) {
-                        1.0
-                    } else {
-                        rng.range(0.01, 4.0)
-                    };
-                }
-                lanes.tmin[i] = rng.range(0.0, 2.0);
-                lanes.tmax[i] = rng.range(1.0, 40.0);
-            }
-            let lo: [f32; 3] = std::array::from_fn(|_| rng.range(-4.0, 12.0).floor());
-            let size = [1.0, 2.0, 4.0, 8.0][(rng.next() % 4) as usize];
-            let planes = [lo, lo.map(|v| v + size * 0.5), lo.map(|v| v + size)];
-            let rays = rng.next() & rng.next();
-            // SAFETY: AVX2 was found above.
-            let vector = unsafe { chain_tests(planes, &lanes, rays) };
-            let scalar = crate::packet::chain_tests(planes, &lanes, rays);
-            // Only the rays asked about count (the vectors cover more).
-            let only = |t: ChainTests| ChainTests {
-                inside: t.inside,
-                first: t.first.map(|m| m & rays),
-                before_exit: t.before_exit.map(|m| m & rays),
-                order: t.order.map(|m| m & rays),
-            };
-            assert_eq!(only(vector), only(scalar), "{planes:?} {rays:x}");
-            inside += vector.inside.count_ones();
-        }
-        assert!(inside > 10_000, "{inside} rays inside");
     }
 
     #[test]

@@ -52,13 +52,12 @@ fn find_leaf(c: vec3<u32>) -> u32 {
     var addr = params.levels[0].x;
     let leaf_level = params.leaf_level;
     for (var l = 0u; l < leaf_level; l += 1u) {
-        let mask = load_word(addr) & 0xffu;
+        let mask = node_mask(addr);
         let ch = path_child(c, leaf_level - 1u - l);
         if ((mask & (1u << ch)) == 0u) {
             return LIT_NO_LEAF;
         }
-        let rank = countOneBits(mask & ((1u << ch) - 1u));
-        let pointer = fetch_pointer(addr, rank, params.levels[l].y);
+        let pointer = child_reference(addr, l, mask, ch);
         let child = params.levels[l + 1u];
         if (pointer >= child.z) {
             lit_fault = INFO_MALFORMED;
@@ -73,13 +72,12 @@ fn find_leaf(c: vec3<u32>) -> u32 {
 fn node_occupied(c: vec3<u32>, level: u32) -> bool {
     var addr = params.levels[0].x;
     for (var l = 0u; l < level; l += 1u) {
-        let mask = load_word(addr) & 0xffu;
+        let mask = node_mask(addr);
         let ch = path_child(c, level - 1u - l);
         if ((mask & (1u << ch)) == 0u) {
             return false;
         }
-        let rank = countOneBits(mask & ((1u << ch) - 1u));
-        let pointer = fetch_pointer(addr, rank, params.levels[l].y);
+        let pointer = child_reference(addr, l, mask, ch);
         let child = params.levels[l + 1u];
         if (pointer >= child.z) {
             lit_fault = INFO_MALFORMED;
@@ -117,7 +115,7 @@ fn shading_normal(cell: vec3<u32>, level: u32, face: u32) -> vec3<f32> {
                     if (all(l >= vec3<i32>(0)) && all(l <= vec3<i32>(leaf_last))) {
                         let a = find_leaf(vec3<u32>(l));
                         if (a != LIT_NO_LEAF) {
-                            leaves[i] = vec2<u32>(load_word(a), load_word(a + 1u));
+                            leaves[i] = leaf_mask(a);
                         }
                     }
                 }

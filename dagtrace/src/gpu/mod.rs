@@ -905,4 +905,6 @@ impl GpuTracer {
 }
 
 #[cfg(test)]
+mod decode_check;
+#[cfg(test)]
 mod tests;

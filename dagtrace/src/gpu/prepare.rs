@@ -1,6 +1,6 @@
 //! Host-side set-up of batch rays (f64), and the answers the host computes.
 //!
-//! The set-up is the CPU tracer's (`tracer.rs`, `Tracer::setup` and
+//! The set-up is the CPU tracer's (`walk.rs`, `Tracer::setup` and
 //! `Tracer::prepare`), with the very same f64 operations, so that the shader's
 //! f32 traversal starts from the same numbers: world to grid space, rays that
 //! cannot hit answered here (NaN, `tmin > tmax`, an empty volume), direction

@@ -3,7 +3,7 @@
 // Preceded by a preamble generated from dagtrace/src/gpu/layout.rs (shared
 // structs, constants, bindings and `load_word`).
 //
-// The traversal is the CPU tracer's (dagtrace/src/tracer.rs), with the same
+// The traversal is the CPU tracer's (dagtrace/src/walk.rs), with the same
 // plane arithmetic and tie rules, so that both find the same cell:
 // - the ray is in grid space, mirrored so that every direction component is
 //   non-negative (bit i of `octant` set when axis i is mirrored); cell
@@ -113,6 +113,38 @@ fn fetch_pointer(node: u32, rank: u32, width: u32) -> u32 {
     return v;
 }
 
+// Node and leaf decoding, the counterpart of the CPU tracer's
+// dagtrace/src/node.rs (the test gpu::decode_check runs these functions on
+// the device and compares them with it).
+
+// Word address of record `pointer` of level `level`: a node's header word,
+// or a leaf mask's low word.
+fn record_address(level: u32, pointer: u32) -> u32 {
+    return params.levels[level].x + select(pointer, 2u * pointer, level == params.leaf_level);
+}
+
+// The child mask of the node at word address `a`.
+fn node_mask(a: u32) -> u32 {
+    return load_word(a) & 0xffu;
+}
+
+// The 24 attribute bits of the node at word address `a`.
+fn node_attribute(a: u32) -> u32 {
+    return load_word(a) >> CHILD_MASK_BITS;
+}
+
+// The reference (pointer into level `level + 1`) of the child at slot `c`
+// (set in `mask`) of the node of level `level` at word address `a`, whose
+// child mask is `mask`.
+fn child_reference(a: u32, level: u32, mask: u32, c: u32) -> u32 {
+    return fetch_pointer(a, countOneBits(mask & ((1u << c) - 1u)), params.levels[level].y);
+}
+
+// The leaf mask at word address `a` (low word, high word).
+fn leaf_mask(a: u32) -> vec2<u32> {
+    return vec2<u32>(load_word(a), load_word(a + 1u));
+}
+
 struct BrickHit {
     hit: bool,
     cell: vec3<u32>,
@@ -123,8 +155,9 @@ struct BrickHit {
 fn brick(p: Prepared, leaf: u32, idx: vec3<u32>) -> BrickHit {
     var r: BrickHit;
     r.hit = false;
-    let w0 = load_word(leaf);
-    let w1 = load_word(leaf + 1u);
+    let bits = leaf_mask(leaf);
+    let w0 = bits.x;
+    let w1 = bits.y;
     let lo = vec3<f32>(idx) * 4.0;
     let t0 = (lo - p.o) * p.inv;
     let t1 = (lo + vec3<f32>(1.0) - p.o) * p.inv;
@@ -220,7 +253,7 @@ fn traverse(p: Prepared) -> Found {
         if (enter) {
             enter = false;
             node = addr;
-            mask = load_word(addr) & 0xffu;
+            mask = node_mask(addr);
             let size = f32(1u << (depth - level));
             let lo = vec3<f32>(idx) * size;
             let t_lo = (lo - p.o) * p.inv;
@@ -285,10 +318,8 @@ fn traverse(p: Prepared) -> Found {
             f.level = child_level;
             break;
         }
-        let c = j ^ p.neg;
-        let rank = countOneBits(mask & ((1u << c) - 1u));
         let child_info = params.levels[child_level];
-        let pointer = fetch_pointer(node, rank, params.levels[level].y);
+        let pointer = child_reference(node, level, mask, j ^ p.neg);
         if (pointer >= child_info.z) {
             f.status = INFO_MALFORMED;
             break;
@@ -344,11 +375,11 @@ fn saturated_count(a: u32) -> vec2<u32> {
 fn subtree_count(level: u32, pointer: u32) -> vec2<u32> {
     let info = params.levels[level];
     if (level == params.leaf_level) {
-        let a = info.x + 2u * pointer;
-        return vec2<u32>(countOneBits(load_word(a)) + countOneBits(load_word(a + 1u)), 0u);
+        let bits = leaf_mask(info.x + 2u * pointer);
+        return vec2<u32>(countOneBits(bits.x) + countOneBits(bits.y), 0u);
     }
     let a = info.x + pointer;
-    let count = load_word(a) >> CHILD_MASK_BITS;
+    let count = node_attribute(a);
     if (count == COUNT_SATURATED) {
         return saturated_count(a);
     }
@@ -369,20 +400,21 @@ fn dense_index(cell: vec3<u32>, level: u32) -> vec2<u32> {
     let leaf_level = params.leaf_level;
     let interior = min(level, leaf_level);
     for (var l = 0u; l < interior; l += 1u) {
-        let mask = load_word(addr) & 0xffu;
+        let mask = node_mask(addr);
         let c = child_at(cell, level - 1u - l);
-        let before = countOneBits(mask & ((1u << c) - 1u));
-        let width = params.levels[l].y;
-        for (var rank = 0u; rank < before; rank += 1u) {
-            index = add64(index, subtree_count(l + 1u, fetch_pointer(addr, rank, width)));
+        for (var s = 0u; s < c; s += 1u) {
+            if ((mask & (1u << s)) != 0u) {
+                index = add64(index, subtree_count(l + 1u, child_reference(addr, l, mask, s)));
+            }
         }
-        let pointer = fetch_pointer(addr, before, width);
+        let pointer = child_reference(addr, l, mask, c);
         let child = params.levels[l + 1u];
         addr = child.x + select(pointer, 2u * pointer, l + 1u == leaf_level);
     }
     if (level > leaf_level) {
-        let w0 = load_word(addr);
-        let w1 = load_word(addr + 1u);
+        let bits = leaf_mask(addr);
+        let w0 = bits.x;
+        let w1 = bits.y;
         var below: u32;
         if (level == params.depth) {
             let hi = child_at(cell & vec3<u32>(2u), 1u);

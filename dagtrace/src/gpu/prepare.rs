@@ -10,8 +10,8 @@
 //! The shader then reports the entry parameter and face as the CPU tracer
 //! does (`batch.wgsl`), so for these rays the host does no more. The batch
 //! path sets these usual rays up with [`setup_usual`]: the same operations
-//! with the case analysis folded into one test, a third less host time a ray
-//! than going through [`setup`] (BENCHMARKS.md).
+//! with the case analysis folded into one test, about a quarter less host
+//! CPU time a ray than going through [`setup`] (BENCHMARKS.md).
 //!
 //! Rare rays keep the earlier f64 path, and their answers are computed here
 //! from the cell the shader found ([`answer`]): rays with no direction (a

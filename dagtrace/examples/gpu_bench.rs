@@ -9,8 +9,10 @@
 //! primary rays of a WxH image (default 1920x1080: made and traced on the GPU,
 //! an RGBA image written) and for random rays (set up on the host, streamed
 //! through the GPU in chunks, read back; the host part of the call, its
-//! set-up and answers, in ms and per 10^6 rays; the whole call's time over
-//! the dispatch time), with the full and the short stack, and the same rays
+//! set-up and answers, in ms and per 10^6 rays, as wall time and as the CPU
+//! time of the threads that run it, which the load of other processes does
+//! not inflate; the whole call's time over the dispatch time), with the full
+//! and the short stack, and the same rays
 //! on the CPU tracer (all cores). `--chunk N` sets the rays per chunk of the
 //! batch path (with the whole batch in one chunk nothing overlaps, and the
 //! host part is the host's work alone, the GPU idle meanwhile).
@@ -91,6 +93,25 @@ mod bench {
             );
         }
         Ok(args)
+    }
+
+    /// CPU time of the calling thread.
+    fn thread_cpu_time() -> Duration {
+        let mut t = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        // SAFETY: `t` is a valid timespec for the call to write.
+        let r = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+        assert_eq!(r, 0, "clock_gettime(CLOCK_THREAD_CPUTIME_ID)");
+        Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
+    }
+
+    /// CPU time of rayon's global pool so far, on which the batch path's
+    /// host work (set-up and answers) runs and nothing else while it is
+    /// measured (the driver's threads are not rayon's).
+    fn pool_cpu_time() -> Duration {
+        rayon::broadcast(|_| thread_cpu_time()).into_iter().sum()
     }
 
     fn median(mut v: Vec<Duration>) -> Duration {
@@ -259,15 +280,18 @@ mod bench {
                 let mut total = Vec::new();
                 let mut host = Vec::new();
                 let mut ratio = Vec::new();
+                let mut host_cpu = Vec::new();
                 let mut iterations = 0.0;
                 // One untimed call first: it makes the tracer's chunk buffers.
                 tracer
                     .trace_into_with_stats(&rays, &mut hits)
                     .map_err(|e| e.to_string())?;
                 for _ in 0..args.runs {
+                    let cpu_before = pool_cpu_time();
                     let stats = tracer
                         .trace_into_with_stats(&rays, &mut hits)
                         .map_err(|e| e.to_string())?;
+                    host_cpu.push(pool_cpu_time().saturating_sub(cpu_before));
                     gpu.push(stats.gpu_time);
                     total.push(stats.total_time);
                     host.push(stats.host_time);
@@ -277,11 +301,12 @@ mod bench {
                     iterations = stats.iterations as f64 / stats.gpu_rays.max(1) as f64;
                 }
                 println!(
-                    "  {name}: {} / {} (host part {:.1} ms, {:.2} ms per 10^6 rays; whole call {:.3}x the dispatch time; {:.1} loop iterations per traced ray)",
+                    "  {name}: {} / {} (host part {:.1} ms, {:.2} ms per 10^6 rays, {:.2} ms of CPU per 10^6 rays; whole call {:.3}x the dispatch time; {:.1} loop iterations per traced ray)",
                     rate(rays.len(), median(gpu)),
                     rate(rays.len(), median(total)),
                     median(host.clone()).as_secs_f64() * 1e3,
                     median(host).as_secs_f64() * 1e3 * per_million,
+                    median(host_cpu).as_secs_f64() * 1e3 * per_million,
                     median(ratio).as_secs_f64(),
                     iterations
                 );

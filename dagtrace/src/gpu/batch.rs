@@ -11,7 +11,8 @@
 //! and memory stays bounded by the two slots, whatever the batch size.
 //!
 //! The host's share per ray is the f64 set-up (`prepare.rs`, the CPU
-//! tracer's operations) and copying the shader's answer into a [`Hit`]:
+//! tracer's operations, with the usual ray's case analysis folded into one
+//! test: `prepare::setup_usual`) and copying the shader's answer into a [`Hit`]:
 //! the shader computes the cell, the entry parameter, the face and the
 //! attribute index. Only rare rays (see `prepare.rs`) have their answers
 //! computed on the host.
@@ -29,7 +30,7 @@ use super::layout::{
     BATCH_WORKGROUP_SIZE, GpuHit, GpuParams, GpuRay, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT,
     INFO_HOST_ANSWER, INFO_LEVEL_SHIFT, INFO_MALFORMED, INFO_SKIPPED, RAY_SKIP,
 };
-use super::prepare::{self, Setup};
+use super::prepare::{self, Frame, Setup};
 use super::{GpuError, GpuTracer, TraceStats, device_error};
 
 /// What the shader gets for a ray answered on the host: it writes a record
@@ -277,19 +278,8 @@ impl GpuTracer {
                         rays.len(),
                     ))
                 };
-                for (k, ((record, ray), hit)) in out.into_iter().zip(rays).zip(hits).enumerate() {
-                    let gpu = match prepare::setup(&self.frame, ray) {
-                        Ok(Setup::Trace(gpu)) => gpu,
-                        Ok(Setup::Done(answer)) => {
-                            *hit = answer;
-                            SKIPPED_RAY
-                        }
-                        Err(_) => {
-                            too_deep.fetch_min(first + k, Ordering::Relaxed);
-                            SKIPPED_RAY
-                        }
-                    };
-                    record.write(bytemuck::cast(gpu));
+                if let Some(k) = set_up_task(&self.frame, rays, hits, out) {
+                    too_deep.fetch_min(first + k, Ordering::Relaxed);
                 }
             });
         drop(view);
@@ -461,6 +451,38 @@ impl GpuTracer {
         }
         Ok(t0)
     }
+}
+
+/// Sets the rays of one task of [`GpuTracer::set_up_chunk`] up into `out`
+/// (one record a ray), answering those that need no DAG into `hits`: with
+/// [`prepare::setup_usual`], and the rays it declines with
+/// [`prepare::setup`]. Returns the first ray whose level is deeper than the
+/// DAG.
+fn set_up_task(
+    frame: &Frame,
+    rays: &[Ray],
+    hits: &mut [Hit],
+    out: wgpu::WriteOnly<'_, [[u8; size_of::<GpuRay>()]]>,
+) -> Option<usize> {
+    let mut too_deep = None;
+    for (k, ((record, ray), hit)) in out.into_iter().zip(rays).zip(hits).enumerate() {
+        let gpu = match prepare::setup_usual(frame, ray) {
+            Some(gpu) => gpu,
+            None => match prepare::setup(frame, ray) {
+                Ok(Setup::Trace(gpu)) => gpu,
+                Ok(Setup::Done(answer)) => {
+                    *hit = answer;
+                    SKIPPED_RAY
+                }
+                Err(_) => {
+                    too_deep = too_deep.or(Some(k));
+                    SKIPPED_RAY
+                }
+            },
+        };
+        record.write(bytemuck::cast(gpu));
+    }
+    too_deep
 }
 
 /// Maps the first `size` bytes of `buffer` for reading once the GPU is done with it.

@@ -214,7 +214,17 @@ impl FileLayout {
         let mut raw = RawHeader {
             magic: MAGIC,
             version_major: layout::VERSION_MAJOR.to_le(),
-            version_minor: layout::VERSION_MINOR.to_le(),
+            // The lowest version that has everything the file uses (§22.1).
+            version_minor: if self
+                .sections
+                .iter()
+                .any(|s| s.kind == SectionKind::PackedColors)
+            {
+                layout::VERSION_MINOR_PACKED_COLORS
+            } else {
+                layout::VERSION_MINOR
+            }
+            .to_le(),
             header_size: (HEADER_SIZE as u32).to_le(),
             required_features: 0,
             optional_features: 0,

@@ -24,6 +24,9 @@ pub const VERSION_MAJOR: u16 = 1;
 /// Minor version written by this library. Readers accept any minor version of
 /// their major version: minor versions only add optional features and sections.
 pub const VERSION_MINOR: u16 = 0;
+/// The minor version of a file holding a PACKED_COLORS section (kind 4, added
+/// in format 1.1); files without one stay [`VERSION_MINOR`].
+pub const VERSION_MINOR_PACKED_COLORS: u16 = 1;
 
 /// Size in bytes of the fixed file header.
 pub const HEADER_SIZE: usize = 128;

@@ -75,7 +75,7 @@ fn ball_with_packed_colors() -> Vec<u8> {
             if i < 300 {
                 [(i / 40) as u8 * 30, 200, (i / 90) as u8, 255]
             } else {
-                [i as u8, (i * 7 >> 3) as u8, 0x80, (i % 3) as u8 + 250]
+                [i as u8, ((i * 7) >> 3) as u8, 0x80, (i % 3) as u8 + 250]
             }
         })
         .collect();

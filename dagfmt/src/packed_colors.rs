@@ -229,6 +229,14 @@ fn read_bits(bytes: &[u8], start: usize, pos: u64, n: u32) -> u32 {
     }
     let byte = start as u64 + pos / 8;
     let shift = (pos % 8) as u32;
+    // Fast path: eight bytes in range, one unaligned load.
+    if let Some(b) = usize::try_from(byte)
+        .ok()
+        .and_then(|i| bytes.get(i..i.checked_add(8)?))
+    {
+        let word = u64::from_le_bytes(b.try_into().expect("8 bytes"));
+        return ((word >> shift) & ((1u64 << n) - 1)) as u32;
+    }
     let mut word = 0u64;
     for k in 0..5u64 {
         let b = usize::try_from(byte + k)

@@ -101,6 +101,42 @@ fn with_colors(bytes: &[u8]) -> Vec<u8> {
     model.encode()
 }
 
+/// Colours for a PACKED_COLORS section of the base file: block 0 a palette of
+/// three colours (R widths 5, G 4, B 0; index width 2; sub-block 2 mixed, the
+/// others uniform: 15 bytes, the last with 7 padding bits), block 1 (the rest)
+/// direct.
+fn packable_colors(count: u64) -> Vec<[u8; 4]> {
+    (0..count)
+        .map(|i| match i {
+            0..20 => [200, 100, 50, 255],
+            20..40 => [210, 100, 50, 255],
+            40..64 => [220, 110, 50, 255],
+            _ => [(i * 37) as u8, (i * 11) as u8, (i * 5 + 3) as u8, 255],
+        })
+        .collect()
+}
+
+/// The base file with a PACKED_COLORS section holding `section` for
+/// `item_count` colours.
+fn with_packed_section(bytes: &[u8], item_count: u64, section: Vec<u8>) -> Vec<u8> {
+    let mut model = DagModel::decode(bytes).expect("base decodes");
+    model.extra.push(model::ExtraSection {
+        kind: SectionKind::PACKED_COLORS,
+        item_count,
+        bytes: section,
+    });
+    model.encode()
+}
+
+/// A packed section of the base file's colours, lossless, edited by `f`.
+fn packed_edit(bytes: &[u8], f: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
+    let count = DagModel::decode(bytes).expect("base decodes").voxel_count;
+    let (mut section, _) =
+        dagfmt::packed_colors::encode(&packable_colors(count), 0).expect("bound 0");
+    f(&mut section);
+    with_packed_section(bytes, count, section)
+}
+
 /// Edits bytes in place and recomputes every checksum.
 fn edit(bytes: &[u8], f: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
     let mut out = bytes.to_vec();
@@ -642,6 +678,158 @@ pub fn validate_cases() -> Vec<ValidateCase> {
         },
     );
 
+    // ---- Packed colours (§12.6). The base file's section: block 0 at 0
+    // (15 bytes: header 0x02, widths 0x45 0x00, base 200 100 50, uniform
+    // 0xfb, then 27 bits of entries and 30 of indices), block 1 direct, the
+    // directory's one entry, the trailer.
+    let packed_count = model.voxel_count;
+    let directory_at = |section: &[u8]| section.len() - 16 - 32;
+    bad(
+        ErrorCode::BadPackedColorSection,
+        "twice",
+        "a VOXEL_COLORS and a PACKED_COLORS section",
+        {
+            let (section, _) =
+                dagfmt::packed_colors::encode(&packable_colors(packed_count), 0).expect("E 0");
+            with_packed_section(&colored, packed_count, section)
+        },
+    );
+    bad(
+        ErrorCode::BadPackedColorSection,
+        "count",
+        "the packed colour section's item count is one less than the voxels",
+        {
+            let (section, _) =
+                dagfmt::packed_colors::encode(&packable_colors(packed_count - 1), 0).expect("E 0");
+            with_packed_section(&base, packed_count - 1, section)
+        },
+    );
+    bad(
+        ErrorCode::BadPackedColorSection,
+        "kind0",
+        "a packed colour section in a file with attribute kind 0",
+        {
+            let (section, _) =
+                dagfmt::packed_colors::encode(&packable_colors(packed_count), 0).expect("E 0");
+            with_packed_section(&base0, packed_count, section)
+        },
+    );
+    bad(
+        ErrorCode::BadPackedColorSection,
+        "short",
+        "a packed colour section of 40 bytes, shorter than its directory and trailer (48)",
+        packed_edit(&base, |s| {
+            let tail = s.split_off(s.len() - 16);
+            s.truncate(24);
+            s.extend_from_slice(&tail);
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "shift",
+        "the trailer's block shift is 5",
+        packed_edit(&base, |s| {
+            let at = s.len() - 15;
+            s[at] = 5;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "bound",
+        "the trailer's error bound is 200",
+        packed_edit(&base, |s| {
+            let at = s.len() - 16;
+            s[at] = 200;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "measured",
+        "the trailer's measured error, 1, exceeds its bound, 0",
+        packed_edit(&base, |s| {
+            let at = s.len() - 14;
+            s[at] = 1;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "reserved",
+        "a reserved trailer byte is 1",
+        packed_edit(&base, |s| {
+            let at = s.len() - 13;
+            s[at] = 1;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "squared",
+        "a squared error of 1 with a measured error of 0",
+        packed_edit(&base, |s| {
+            let at = s.len() - 8;
+            s[at] = 1;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorDirectory,
+        "empty-block",
+        "block 1 starts at 0, leaving block 0 empty",
+        packed_edit(&base, |s| {
+            let d = directory_at(s);
+            // Bits 40 .. 53 of the entry: block 1's offset.
+            s[d + 5] = 0;
+            s[d + 6] &= !0x1f;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorDirectory,
+        "unused-bits",
+        "the last, unused bit of the directory entry is set",
+        packed_edit(&base, |s| {
+            let d = directory_at(s);
+            s[d + 31] = 0x80;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorBlock,
+        "width",
+        "block 0's red width is 9",
+        packed_edit(&base, |s| s[1] = 0x49),
+    );
+    bad(
+        ErrorCode::BadColorBlock,
+        "palette",
+        "block 1, of 13 colours, claims a palette of 16",
+        packed_edit(&base, |s| {
+            let d = directory_at(s);
+            let block1 = usize::from(s[d + 5]) | usize::from(s[d + 6] & 0x1f) << 8;
+            s[block1] = 15;
+        }),
+    );
+    bad(
+        ErrorCode::ColorBlockLength,
+        "",
+        "block 0's red width is 8, which makes it 16 bytes long; the directory says 15",
+        packed_edit(&base, |s| s[1] = 0x48),
+    );
+    bad(
+        ErrorCode::ColorBlockPadding,
+        "",
+        "the last padding bit of block 0 is set",
+        packed_edit(&base, |s| s[14] |= 0x80),
+    );
+    bad(
+        ErrorCode::ColorIndexOutOfRange,
+        "",
+        "block 0's first palette index is 3, its palette holds 3 colours",
+        packed_edit(&base, |s| s[10] |= 0x18),
+    );
+    bad(
+        ErrorCode::ColorValueOutOfRange,
+        "",
+        "block 0's red base is 250, so its third entry (20 steps up) starts past 255",
+        packed_edit(&base, |s| s[3] = 250),
+    );
+
     // ---- Valid files that exercise the lenient parts of the format.
     let mut good = vec![
         case(
@@ -663,6 +851,24 @@ pub fn validate_cases() -> Vec<ValidateCase> {
             None,
         ),
     ];
+    good.push(case(
+        "valid-packed-colors",
+        "the base file with a lossless PACKED_COLORS section: a palette block and a direct block",
+        packed_edit(&base, |_| {}),
+        None,
+    ));
+    good.push(case(
+        "valid-packed-colors-lossy",
+        "the base file with a PACKED_COLORS section within 3 per channel, with alpha",
+        {
+            let colors: Vec<[u8; 4]> = (0..model.voxel_count)
+                .map(|i| [(i * 37) as u8, (i * 3) as u8, 7, 200 + (i % 5) as u8])
+                .collect();
+            let (section, _) = dagfmt::packed_colors::encode(&colors, 3).expect("E 3");
+            with_packed_section(&base, model.voxel_count, section)
+        },
+        None,
+    ));
     let mut m = model.clone();
     m.extra.push(model::ExtraSection {
         kind: 0x8000_0123,

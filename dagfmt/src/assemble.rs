@@ -87,6 +87,18 @@ impl SectionInfo {
         }
     }
 
+    /// A packed colour section (kind 4) of `colors` colours in `length` bytes.
+    pub fn packed_colors(colors: u64, length: u64, crc: u32) -> Self {
+        SectionInfo {
+            kind: SectionKind::PackedColors,
+            level: 0,
+            pointer_width: 0,
+            length,
+            item_count: colors,
+            crc,
+        }
+    }
+
     /// Units a pointer into this section counts: words of a node level,
     /// leaves of the leaf level (§9.1).
     fn units(&self) -> u64 {
@@ -202,7 +214,17 @@ impl FileLayout {
         let mut raw = RawHeader {
             magic: MAGIC,
             version_major: layout::VERSION_MAJOR.to_le(),
-            version_minor: layout::VERSION_MINOR.to_le(),
+            // The lowest version that has everything the file uses (§22.1).
+            version_minor: if self
+                .sections
+                .iter()
+                .any(|s| s.kind == SectionKind::PackedColors)
+            {
+                layout::VERSION_MINOR_PACKED_COLORS
+            } else {
+                layout::VERSION_MINOR
+            }
+            .to_le(),
             header_size: (HEADER_SIZE as u32).to_le(),
             required_features: 0,
             optional_features: 0,
@@ -367,7 +389,7 @@ fn check(h: &FileHeader, sections: &[SectionInfo]) -> Result<(), BuildError> {
                     s.kind
                 )));
             }
-            SectionKind::VoxelColors => {
+            SectionKind::VoxelColors | SectionKind::PackedColors => {
                 colors += 1;
                 if colors > 1 {
                     return Err(invalid("more than one colour section".into()));
@@ -381,7 +403,12 @@ fn check(h: &FileHeader, sections: &[SectionInfo]) -> Result<(), BuildError> {
                         got: s.item_count,
                     });
                 }
-                if s.level != 0 || s.pointer_width != 0 || s.length != s.item_count * 4 {
+                let length_ok = if s.kind == SectionKind::VoxelColors {
+                    s.length == s.item_count * 4
+                } else {
+                    s.length >= crate::packed_colors::min_section_len(s.item_count)
+                };
+                if s.level != 0 || s.pointer_width != 0 || !length_ok {
                     return Err(invalid(format!(
                         "a colour section with level {}, width {} and {} bytes for {} colours",
                         s.level, s.pointer_width, s.length, s.item_count

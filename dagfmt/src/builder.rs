@@ -102,6 +102,9 @@ pub enum BuildError {
         /// Colours given.
         got: u64,
     },
+    /// A colour error bound over 127 (packed colours).
+    #[error("colour error bound {0} exceeds 127")]
+    ErrorBound(u8),
     /// Colours were given for a DAG without voxel-count attributes.
     #[error("a colour section needs attribute kind 1 (voxel counts) to index the colours")]
     ColorsNeedVoxelCount,
@@ -616,6 +619,7 @@ impl DagBuilder {
             crcs: Vec::new(),
             colors: None,
             colors_crc: 0,
+            packed: None,
             file: None,
         };
         built.lay_out()?;
@@ -792,6 +796,8 @@ pub struct BuiltDag {
     crcs: Vec<u32>,
     colors: Option<Vec<[u8; 4]>>,
     colors_crc: u32,
+    /// A packed colour section's bytes, instead of `colors`.
+    packed: Option<Vec<u8>>,
     /// The file as it will be written (placed by [`FileLayout`]).
     file: Option<FileLayout>,
 }
@@ -844,6 +850,38 @@ impl BuiltDag {
             return Err(e);
         }
         Ok(())
+    }
+
+    /// Attaches one RGBA8 colour per voxel, in dense index (Morton) order, as
+    /// a PACKED_COLORS section coded within `error_bound` per channel (0:
+    /// lossless; at most [`crate::packed_colors::MAX_ERROR_BOUND`]). Needs
+    /// attribute kind 1. Replaces colours attached before.
+    pub fn set_packed_colors(
+        &mut self,
+        rgba: &[[u8; 4]],
+        error_bound: u8,
+    ) -> Result<crate::packed_colors::PackedSummary, BuildError> {
+        if self.attributes != AttributeKind::VoxelCount {
+            return Err(BuildError::ColorsNeedVoxelCount);
+        }
+        if rgba.len() as u64 != self.voxel_count {
+            return Err(BuildError::ColorCount {
+                expected: self.voxel_count,
+                got: rgba.len() as u64,
+            });
+        }
+        let (bytes, summary) = crate::packed_colors::encode(rgba, error_bound)
+            .ok_or(BuildError::ErrorBound(error_bound))?;
+        self.colors_crc = crc32c::crc32c(&bytes);
+        self.colors = None;
+        self.packed = Some(bytes);
+        if let Err(e) = self.place() {
+            self.packed = None;
+            self.colors_crc = 0;
+            self.place()?;
+            return Err(e);
+        }
+        Ok(summary)
     }
 
     /// Per-level statistics (root first, leaf level last), including the node
@@ -963,6 +1001,13 @@ impl BuiltDag {
                 self.colors_crc,
             ));
         }
+        if let Some(packed) = &self.packed {
+            sections.push(SectionInfo::packed_colors(
+                self.voxel_count,
+                packed.len() as u64,
+                self.colors_crc,
+            ));
+        }
         let header = FileHeader {
             depth: self.depth,
             attributes: self.attributes,
@@ -983,8 +1028,12 @@ impl BuiltDag {
     ) -> io::Result<()> {
         let leaf_level = self.levels.len();
         if index > leaf_level {
-            let colors = self.colors.as_deref().unwrap_or(&[]);
-            for chunk in colors.as_flattened().chunks(CHUNK) {
+            let colors = match (&self.colors, &self.packed) {
+                (Some(colors), _) => colors.as_flattened(),
+                (None, Some(packed)) => packed,
+                (None, None) => &[],
+            };
+            for chunk in colors.chunks(CHUNK) {
                 sink(chunk)?;
             }
             return Ok(());

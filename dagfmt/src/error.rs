@@ -112,6 +112,22 @@ error_codes! {
     HeaderVoxelCount = "E062", "header-voxel-count";
     /// A voxel colour section is present without attribute kind 1, twice, or with a wrong count.
     BadColorSection = "E063", "bad-color-section";
+    /// A packed colour section is present without attribute kind 1, beside another colour section, with a wrong count, or shorter than its directory and trailer.
+    BadPackedColorSection = "E080", "bad-packed-color-section";
+    /// A packed colour section's trailer has a wrong block shift, an error bound over 127, a measured error over the bound, a non-zero reserved byte or an impossible squared error.
+    BadColorTrailer = "E081", "bad-color-trailer";
+    /// A packed colour directory entry places a block outside the blocks, out of order, or not right after the block before; or its unused bits are not zero.
+    BadColorDirectory = "E082", "bad-color-directory";
+    /// A packed colour block header is invalid (width over 8, alpha width without alpha, a palette larger than the block, a direct block with a palette size, a uniform mask past the block).
+    BadColorBlock = "E083", "bad-color-block";
+    /// A packed colour block's length by its header differs from its length by the directory.
+    ColorBlockLength = "E084", "color-block-length";
+    /// The padding bits after a packed colour block's bit stream are not zero.
+    ColorBlockPadding = "E085", "color-block-padding";
+    /// A palette index of a packed colour block is not below its palette size.
+    ColorIndexOutOfRange = "E086", "color-index-out-of-range";
+    /// A packed colour entry starts its interval past 255.
+    ColorValueOutOfRange = "E087", "color-value-out-of-range";
 }
 
 impl fmt::Display for ErrorCode {

@@ -12,6 +12,9 @@
 //! - [`validator`]: a file the validator accepts opens, walks and iterates
 //!   without a single error and holds the voxel count its header states; a
 //!   file the reader refuses is never accepted;
+//! - [`packed_colors`]: a packed colour section that its checks accept
+//!   decodes the same at random and in sequence, every section decodes without
+//!   a panic, and colours encoded from the input decode within the bound;
 //! - [`transport`]: unpacking arbitrary bytes never panics nor returns more
 //!   than the limit, and unpack(pack(x)) == x;
 //! - [`batch`]: parse(write(parse(x))) == parse(x) for rays and hits, text
@@ -24,6 +27,7 @@ use std::collections::HashSet;
 
 use crate::batch::{self, Hit, Ray};
 use crate::layout::{HEADER_SIZE, MAGIC};
+use crate::packed_colors;
 use crate::reader::{Dag, NodeRef};
 use crate::transport;
 use crate::validate::{self, ValidateOptions};
@@ -283,6 +287,60 @@ pub fn validator(bytes: &[u8]) {
         analyzed.is_ok(),
         "statistics of a valid file fail: {analyzed:?}"
     );
+    if let Some(table) = dag.color_table() {
+        assert_eq!(table.len(), header_count);
+        for (i, c) in table.iter().take(VOXEL_LIMIT).enumerate() {
+            assert_eq!(table.get(i as u64), Some(c));
+        }
+    }
+}
+
+/// The packed colour harness. The first two bytes are a colour count, the
+/// rest a PACKED_COLORS section: whatever [`packed_colors::check_section`]
+/// says, decoding never panics and random access agrees with sequential
+/// decoding; a section it accepts also opens. Then the same rest, read as
+/// RGBA colours, is encoded with the error bound of the third byte and must
+/// decode within it.
+pub fn packed_colors(bytes: &[u8]) {
+    let Some((count, section)) = bytes.split_first_chunk::<2>() else {
+        return;
+    };
+    let count = u64::from(u16::from_le_bytes(*count));
+    let errors = packed_colors::check_section(section, count);
+    match packed_colors::PackedColors::new(section, count) {
+        Ok(colors) => {
+            let mut n = 0;
+            for (i, c) in colors.iter().enumerate() {
+                assert_eq!(colors.get(i as u64), Some(c));
+                n += 1;
+            }
+            assert_eq!(n, count);
+        }
+        Err(e) => assert!(
+            errors.contains(&e),
+            "open refused {e:?}, checks said {errors:?}"
+        ),
+    }
+    let bound = section
+        .first()
+        .map_or(0, |b| b % (packed_colors::MAX_ERROR_BOUND + 1));
+    let (colors, _) = section.as_chunks::<4>();
+    let (encoded, summary) = packed_colors::encode(colors, bound).expect("bound in range");
+    assert_eq!(summary.length, encoded.len() as u64);
+    assert_eq!(
+        packed_colors::check_section(&encoded, colors.len() as u64),
+        vec![]
+    );
+    let decoded = packed_colors::PackedColors::new(&encoded, colors.len() as u64).expect("opens");
+    for (i, (src, dec)) in colors.iter().zip(decoded.iter()).enumerate() {
+        assert_eq!(decoded.get(i as u64), Some(dec));
+        for c in 0..4 {
+            assert!(
+                src[c].abs_diff(dec[c]) <= bound,
+                "{src:?} decoded as {dec:?}, bound {bound}"
+            );
+        }
+    }
 }
 
 /// The transport harness: unpacks `bytes` with limit [`TRANSPORT_LIMIT`],

@@ -24,6 +24,9 @@ pub const VERSION_MAJOR: u16 = 1;
 /// Minor version written by this library. Readers accept any minor version of
 /// their major version: minor versions only add optional features and sections.
 pub const VERSION_MINOR: u16 = 0;
+/// The minor version of a file holding a PACKED_COLORS section (kind 4, added
+/// in format 1.1); files without one stay [`VERSION_MINOR`].
+pub const VERSION_MINOR_PACKED_COLORS: u16 = 1;
 
 /// Size in bytes of the fixed file header.
 pub const HEADER_SIZE: usize = 128;
@@ -84,6 +87,10 @@ pub enum SectionKind {
     /// One RGBA8 colour per voxel, in dense voxel-index order (needs attribute
     /// kind [`AttributeKind::VoxelCount`]).
     VoxelColors,
+    /// The voxel colours in compressed blocks with a directory
+    /// ([`crate::packed_colors`]; needs attribute kind
+    /// [`AttributeKind::VoxelCount`]).
+    PackedColors,
     /// A kind this version does not define, with the optional bit set; skipped.
     UnknownOptional(u32),
 }
@@ -95,6 +102,8 @@ impl SectionKind {
     pub const LEAF_LEVEL: u32 = 2;
     /// The raw value of the voxel colour section.
     pub const VOXEL_COLORS: u32 = 3;
+    /// The raw value of the packed colour section.
+    pub const PACKED_COLORS: u32 = 4;
 
     /// Interprets a raw kind; `None` for an unknown required kind.
     pub fn from_raw(raw: u32) -> Option<Self> {
@@ -102,6 +111,7 @@ impl SectionKind {
             Self::NODE_LEVEL => Some(Self::NodeLevel),
             Self::LEAF_LEVEL => Some(Self::LeafLevel),
             Self::VOXEL_COLORS => Some(Self::VoxelColors),
+            Self::PACKED_COLORS => Some(Self::PackedColors),
             r if r & SECTION_KIND_OPTIONAL_BIT != 0 => Some(Self::UnknownOptional(r)),
             _ => None,
         }
@@ -113,6 +123,7 @@ impl SectionKind {
             Self::NodeLevel => Self::NODE_LEVEL,
             Self::LeafLevel => Self::LEAF_LEVEL,
             Self::VoxelColors => Self::VOXEL_COLORS,
+            Self::PackedColors => Self::PACKED_COLORS,
             Self::UnknownOptional(r) => r,
         }
     }

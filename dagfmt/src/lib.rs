@@ -7,6 +7,8 @@
 //! - [`assemble`]: [`assemble::FileLayout`], the one writer of headers and
 //!   section tables, which streams section bytes from callbacks;
 //! - [`validate`]: checks every rule of the spec and reports every violation;
+//! - [`packed_colors`]: the compressed colour section (encoder, random-access
+//!   decoder, checks);
 //! - [`transport`]: the zstd-compressed transport form;
 //! - [`batch`]: the text and binary ray and hit batch formats;
 //! - [`morton`]: Morton codes, the order of voxels in the DAG;
@@ -30,6 +32,7 @@ pub mod mmap;
 pub mod morton;
 #[cfg(feature = "output")]
 pub mod output;
+pub mod packed_colors;
 pub mod reader;
 pub mod stats;
 pub mod transport;
@@ -38,4 +41,4 @@ pub mod validate;
 pub use builder::DagBuilder;
 pub use error::{ErrorCode, FormatError};
 pub use layout::{AttributeKind, SectionKind};
-pub use reader::{Dag, Header, LeafMask, LevelSection, Node, NodeRef};
+pub use reader::{ColorTable, Dag, Header, LeafMask, LevelSection, Node, NodeRef};

@@ -14,6 +14,7 @@ use crate::layout::{
     SECTION_ALIGN, SECTION_ENTRY_SIZE, SectionKind,
 };
 use crate::morton;
+use crate::packed_colors::PackedColors;
 use std::ops::ControlFlow;
 
 /// The decoded file header.
@@ -209,6 +210,49 @@ pub struct NodeRef {
     pub pointer: u32,
 }
 
+/// The colours of a file, whichever section holds them, by dense voxel index.
+#[derive(Clone, Copy, Debug)]
+pub enum ColorTable<'a> {
+    /// A VOXEL_COLORS section: 4 bytes per colour.
+    Raw(&'a [u8]),
+    /// A PACKED_COLORS section.
+    Packed(PackedColors<'a>),
+}
+
+impl<'a> ColorTable<'a> {
+    /// Colours held.
+    pub fn len(&self) -> u64 {
+        match self {
+            ColorTable::Raw(b) => b.len() as u64 / 4,
+            ColorTable::Packed(p) => p.len(),
+        }
+    }
+
+    /// Whether there are no colours.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The colour (RGBA8) of the voxel with dense index `index`, `None` past the end.
+    pub fn get(&self, index: u64) -> Option<[u8; 4]> {
+        match self {
+            ColorTable::Raw(b) => {
+                let at = usize::try_from(index).ok()?.checked_mul(4)?;
+                b.get(at..at + 4).map(|c| [c[0], c[1], c[2], c[3]])
+            }
+            ColorTable::Packed(p) => p.get(index),
+        }
+    }
+
+    /// Every colour in order.
+    pub fn iter(&self) -> Box<dyn Iterator<Item = [u8; 4]> + 'a> {
+        match *self {
+            ColorTable::Raw(b) => Box::new(b.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]])),
+            ColorTable::Packed(p) => Box::new(p.iter()),
+        }
+    }
+}
+
 /// A memory-safe, zero-copy view of a `.vdag` file.
 #[derive(Clone, Debug)]
 pub struct Dag<'a> {
@@ -217,6 +261,7 @@ pub struct Dag<'a> {
     sections: Vec<SectionEntry>,
     levels: Vec<LevelSection<'a>>,
     colors: Option<&'a [u8]>,
+    packed: Option<PackedColors<'a>>,
 }
 
 pub(crate) fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
@@ -527,6 +572,7 @@ pub(crate) fn check_layout(
     let mut usable = Vec::with_capacity(usize::from(count));
     let mut previous_end = table_end as u64;
     let mut seen_colors = false;
+    let mut seen_packed = false;
     for index in 0..count {
         let at = HEADER_SIZE + usize::from(index) * SECTION_ENTRY_SIZE;
         let raw: RawSectionEntry =
@@ -564,15 +610,26 @@ pub(crate) fn check_layout(
         };
         ok &= check_section_entry(&header, &entry, &place, checks, sink)?;
         // (A colour section among the level sections was reported as misplaced.)
-        if entry.kind == SectionKind::VoxelColors && index > u16::from(header.depth) - 2 {
+        let colour_kind = matches!(
+            entry.kind,
+            SectionKind::VoxelColors | SectionKind::PackedColors
+        );
+        if colour_kind && index > u16::from(header.depth) - 2 {
             if seen_colors {
+                // E063 among raw colour sections; E080 once a packed one is involved.
+                let code = if entry.kind == SectionKind::VoxelColors && !seen_packed {
+                    ErrorCode::BadColorSection
+                } else {
+                    ErrorCode::BadPackedColorSection
+                };
                 report!(FormatError::new(
-                    ErrorCode::BadColorSection,
+                    code,
                     entry.entry_offset(),
                     format!("section {index} is a second colour section"),
                 ));
             }
             seen_colors = true;
+            seen_packed |= entry.kind == SectionKind::PackedColors;
         }
         previous_end = entry.offset.saturating_add(entry.length);
         sections.push(entry);
@@ -848,6 +905,50 @@ fn check_section_entry(
                 ));
             }
         }
+        SectionKind::PackedColors => {
+            if entry.pointer_width != 0 {
+                report!(FormatError::new(
+                    ErrorCode::BadPointerWidth,
+                    at + 5,
+                    format!(
+                        "the packed colour section has pointer width {}, must be 0",
+                        entry.pointer_width
+                    ),
+                ));
+            }
+            let kind_wrong = place
+                .attribute_kind
+                .is_some_and(|k| k != AttributeKind::VoxelCount);
+            if kind_wrong || entry.item_count != header.voxel_count {
+                report!(FormatError::new(
+                    ErrorCode::BadPackedColorSection,
+                    at,
+                    format!(
+                        "packed colour section of {} colours; needs attribute kind 1 and one colour per voxel ({} voxels)",
+                        entry.item_count, header.voxel_count
+                    ),
+                ));
+                usable = false;
+            } else if let Some(Err((code, offset, message))) = in_bounds
+                .then(|| {
+                    place
+                        .bytes
+                        .get(entry.offset as usize..(entry.offset + entry.length) as usize)
+                })
+                .flatten()
+                .map(|section| crate::packed_colors::open_trailer(section, entry.item_count))
+            {
+                report!(FormatError::new(code, entry.offset + offset, message));
+                usable = false;
+            }
+            if checks.thorough && entry.level != 0 {
+                report!(FormatError::new(
+                    ErrorCode::BadPackedColorSection,
+                    at + 4,
+                    format!("packed colour section has level {}, must be 0", entry.level),
+                ));
+            }
+        }
         SectionKind::UnknownOptional(_) => {}
     }
     Some(usable)
@@ -866,6 +967,7 @@ impl<'a> Dag<'a> {
         let level_count = usize::from(header.depth) - 1;
         let mut levels = Vec::with_capacity(level_count);
         let mut colors = None;
+        let mut packed = None;
         for entry in &sections {
             let range = entry.offset as usize..(entry.offset + entry.length) as usize;
             match entry.kind {
@@ -879,6 +981,12 @@ impl<'a> Dag<'a> {
                 }),
                 // parse_layout rejects a second colour section.
                 SectionKind::VoxelColors => colors = Some(&bytes[range]),
+                SectionKind::PackedColors => {
+                    packed = Some(
+                        PackedColors::new(&bytes[range], entry.item_count)
+                            .expect("checked by parse_layout"),
+                    )
+                }
                 SectionKind::UnknownOptional(_) => {}
             }
         }
@@ -888,6 +996,7 @@ impl<'a> Dag<'a> {
             sections,
             levels,
             colors,
+            packed,
         };
         let root = &dag.levels[0];
         let empty = root.node_count == 0;
@@ -959,9 +1068,23 @@ impl<'a> Dag<'a> {
         &self.levels
     }
 
-    /// The voxel colour section (RGBA8 per voxel, dense index order), if present.
+    /// The raw voxel colour section (RGBA8 per voxel, dense index order), if present.
     pub fn colors(&self) -> Option<&'a [u8]> {
         self.colors
+    }
+
+    /// The packed colour section (kind 4), if present.
+    pub fn packed_colors(&self) -> Option<PackedColors<'a>> {
+        self.packed
+    }
+
+    /// The voxel colours, raw or packed, if the file has any.
+    pub fn color_table(&self) -> Option<ColorTable<'a>> {
+        match (self.colors, self.packed) {
+            (Some(raw), _) => Some(ColorTable::Raw(raw)),
+            (None, Some(p)) => Some(ColorTable::Packed(p)),
+            (None, None) => None,
+        }
     }
 
     /// The root node, or `None` for an empty volume.

@@ -18,7 +18,7 @@
 //!
 //! 1. The header and the section table (shared with the reader:
 //!    `reader::check_layout`): E001-E013, E020-E026, E030, the leaf-level E043,
-//!    E063, the reserved fields (E009), the header checksum (E011) and the
+//!    E063, E080, E081 (a packed colour section's entry and trailer), the reserved fields (E009), the header checksum (E011) and the
 //!    padding between the table, the sections and the end of the file (E023).
 //! 2. Section checksums (E028), minimal pointer widths (E027) and the root
 //!    level's node count (E040).
@@ -28,6 +28,10 @@
 //!    exact subtree voxel counts computed on the way up) and, once a level's
 //!    parent has been walked, records nobody points to (E047).
 //! 4. The header's voxel count against the root's subtree count (E062).
+//! 5. A packed colour section's directory and blocks (E082 – E087), unless
+//!    its entry or trailer is wrong: after the first error in the directory,
+//!    the blocks are not checked; after the first error in a block, the rest
+//!    of that block is not checked.
 //!
 //! # After a fatal error
 //!
@@ -59,11 +63,12 @@
 //!
 //! Not checked: the contents of sections of unknown optional kinds (nor their
 //! level, pointer width and item count fields, which a later minor version may
-//! give a meaning), the colour values, and the unknown optional feature bits
+//! give a meaning), the values of raw colours, and the unknown optional feature bits
 //! and minor version (readers ignore them).
 
 use crate::error::{ErrorCode, FormatError};
-use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE};
+use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE, SectionKind};
+use crate::packed_colors;
 use crate::reader::{self, LayoutChecks, SectionEntry};
 use std::ops::ControlFlow;
 
@@ -229,6 +234,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
             None => compute(),
         };
         walked?;
+        check_packed_colors(&layout, bytes, f)?;
         for ((entry, _), computed) in checksummed.iter().zip(computed) {
             if computed != entry.crc {
                 f.report(FormatError::new(
@@ -243,6 +249,34 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
         }
         Ok(())
     })
+}
+
+/// The blocks and directory of a packed colour section (E082 – E087); its
+/// entry and trailer (E080, E081) were checked with the layout.
+fn check_packed_colors(
+    layout: &reader::Layout,
+    bytes: &[u8],
+    f: &mut Findings,
+) -> Result<(), Stop> {
+    for entry in &layout.sections {
+        if entry.kind != SectionKind::PackedColors || entry.item_count != layout.header.voxel_count
+        {
+            continue;
+        }
+        let Some(data) = section_bytes(bytes, entry) else {
+            continue;
+        };
+        for (code, offset, message) in packed_colors::check_section(data, entry.item_count) {
+            if matches!(
+                code,
+                ErrorCode::BadPackedColorSection | ErrorCode::BadColorTrailer
+            ) {
+                continue;
+            }
+            f.report(FormatError::new(code, entry.offset + offset, message))?;
+        }
+    }
+    Ok(())
 }
 
 /// Sections totalling at least this many bytes are checksummed on a second

@@ -92,6 +92,9 @@ pub struct ConvertOptions {
     pub solid: bool,
     /// Store per-voxel material colours.
     pub colors: bool,
+    /// Pack the colours (PACKED_COLORS, spec §12.6) within this per-channel
+    /// error (0: lossless); `None`: raw VOXEL_COLORS.
+    pub color_error: Option<u8>,
     /// Replace an existing output file.
     pub force: bool,
     /// Show a progress bar (only on a terminal).
@@ -109,6 +112,34 @@ pub struct ConvertOptions {
     /// Point clouds: the radius of the ball each point sets (world units;
     /// 0: the voxel containing the point).
     pub point_radius: f64,
+}
+
+/// One line on a packed colour section: size per voxel, against raw RGB, and
+/// the error measured while packing.
+pub fn packed_line(p: &dagfmt::packed_colors::PackedSummary) -> String {
+    let bits = if p.count == 0 {
+        0.0
+    } else {
+        p.length as f64 * 8.0 / p.count as f64
+    };
+    format!(
+        "packed, {} bytes for {} colours: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, max error {}, PSNR {}",
+        p.length,
+        p.count,
+        bits / 24.0 * 100.0,
+        p.trailer.error_bound,
+        p.trailer.max_error,
+        psnr_text(p.trailer.psnr(p.count))
+    )
+}
+
+/// PSNR in dB, or "lossless".
+pub fn psnr_text(psnr: f64) -> String {
+    if psnr.is_finite() {
+        format!("{psnr:.2} dB")
+    } else {
+        "infinite (lossless)".into()
+    }
 }
 
 /// Testing: a conversion that spills to temporary files whatever the memory
@@ -134,6 +165,7 @@ impl ConvertOptions {
             format: InputFormat::Auto,
             solid: false,
             colors: false,
+            color_error: None,
             force: false,
             progress: false,
             memory_limit: None,
@@ -205,6 +237,8 @@ pub struct ConvertSummary {
     pub temp_peak_bytes: u64,
     /// Whether the colours went through a temporary file.
     pub colors_spilled: bool,
+    /// The packed colour section's size and measured error, when packed.
+    pub colors_packed: Option<dagfmt::packed_colors::PackedSummary>,
     /// CPU seconds of the whole process.
     pub cpu_seconds: Option<f64>,
     /// CPU seconds of the thread that runs the DAG builder (and loads, writes).
@@ -288,6 +322,9 @@ impl ConvertSummary {
                 plural(self.spill.max_buckets),
                 self.spill.merge_seconds
             );
+        }
+        if let Some(p) = &self.colors_packed {
+            let _ = writeln!(s, "colours:  {}", packed_line(p));
         }
         if self.temp_bytes > 0 {
             let _ = writeln!(
@@ -620,6 +657,7 @@ fn write_output(
     summary.levels = dag.level_stats();
     summary.spill = dag.report().clone();
     summary.colors_spilled = colors.is_some_and(Colours::spilled);
+    summary.colors_packed = colors.and_then(Colours::packed);
     Ok(())
 }
 
@@ -940,7 +978,7 @@ fn convert_mesh(
     let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
     let mut colors = opts
         .colors
-        .then(|| ColourSink::new(scratch, plan.colour_cap));
+        .then(|| ColourSink::new(scratch, plan.colour_cap, opts.color_error));
     let bar = if opts.progress && std::io::stderr().is_terminal() {
         let bar = ProgressBar::with_draw_target(
             Some(bins.codes.len() as u64),
@@ -1042,7 +1080,7 @@ fn build_sorted(
 ) -> Result<(FinishedDag, Option<Colours>), ConvertError> {
     let settings = spill_settings(opts, depth, run_budget)?;
     let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
-    let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap));
+    let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap, opts.color_error));
     let mut rgba: Vec<u8> = Vec::new();
     let mut brick = None;
     let mut mask = 0u64;

@@ -63,6 +63,7 @@ use dagfmt::builder::{
     BuildError, BuiltDag, DagBuilder, Subtrees, UpperBuilder, UpperLevels, fmix64,
 };
 use dagfmt::layout::{self, AttributeKind, MAX_LEAF_COUNT, MAX_NODE_LEVEL_BYTES};
+use dagfmt::packed_colors::{PackedColorEncoder, PackedSummary};
 use dagfmt::stats::LevelStats;
 use hashbrown::HashTable;
 
@@ -582,43 +583,72 @@ impl SectionWriter {
 // Colours.
 
 /// The per-voxel colours, in dense index (Morton) order: kept in memory up to
-/// a cap, then streamed to an unnamed temporary file.
+/// a cap, then streamed to an unnamed temporary file. With an error bound the
+/// colours are packed (spec §12.6) on the way in, block by block, so only the
+/// packed bytes are kept or spilled, and the directory (1/32 byte per colour)
+/// stays in memory until [`ColourSink::finish`].
 #[derive(Debug)]
 pub struct ColourSink {
     scratch: Scratch,
     cap: usize,
     mem: Vec<u8>,
     file: Option<BufWriter<TempFile>>,
+    /// Colours written.
     count: u64,
+    /// Bytes stored (raw or packed).
+    length: u64,
     crc: u32,
+    packer: Option<(PackedColorEncoder, Vec<u8>)>,
 }
 
 impl ColourSink {
     /// Colours kept in memory up to `cap` bytes, beyond that in a file in
-    /// `scratch`.
-    pub fn new(scratch: &Scratch, cap: u64) -> Self {
+    /// `scratch`; packed within `error_bound` (≤ 127) when there is one.
+    pub fn new(scratch: &Scratch, cap: u64, error_bound: Option<u8>) -> Self {
         ColourSink {
             scratch: scratch.clone(),
             cap: cap as usize,
             mem: Vec::new(),
             file: None,
             count: 0,
+            length: 0,
             crc: 0,
+            packer: error_bound.map(|e| {
+                (
+                    PackedColorEncoder::new(e).expect("the error bound was checked"),
+                    Vec::new(),
+                )
+            }),
         }
     }
 
     /// Appends colours (RGBA8, 4 bytes each).
     pub fn write(&mut self, rgba: &[u8]) -> Result<(), ConvertError> {
         debug_assert_eq!(rgba.len() % 4, 0);
-        self.crc = crc32c::crc32c_append(self.crc, rgba);
         self.count += rgba.len() as u64 / 4;
-        if self.file.is_none() && self.mem.len() + rgba.len() <= self.cap {
-            self.mem.extend_from_slice(rgba);
+        match self.packer.take() {
+            None => self.store(rgba),
+            Some((mut encoder, mut buf)) => {
+                encoder.push_bytes(rgba, &mut buf);
+                let stored = self.store(&buf);
+                buf.clear();
+                self.packer = Some((encoder, buf));
+                stored
+            }
+        }
+    }
+
+    /// Keeps section bytes.
+    fn store(&mut self, bytes: &[u8]) -> Result<(), ConvertError> {
+        self.crc = crc32c::crc32c_append(self.crc, bytes);
+        self.length += bytes.len() as u64;
+        if self.file.is_none() && self.mem.len() + bytes.len() <= self.cap {
+            self.mem.extend_from_slice(bytes);
             return Ok(());
         }
         self.spill().map_err(|e| self.scratch.error(e))?;
         let file = self.file.as_mut().expect("spilled");
-        file.write_all(rgba).map_err(|e| self.scratch.error(e))
+        file.write_all(bytes).map_err(|e| self.scratch.error(e))
     }
 
     fn spill(&mut self) -> io::Result<()> {
@@ -632,7 +662,13 @@ impl ColourSink {
     }
 
     /// The colours, ready to be copied into the file.
-    pub fn finish(self) -> Result<Colours, ConvertError> {
+    pub fn finish(mut self) -> Result<Colours, ConvertError> {
+        let mut packed = None;
+        if let Some((encoder, mut buf)) = self.packer.take() {
+            let summary = encoder.finish(&mut buf);
+            self.store(&buf)?;
+            packed = Some(summary);
+        }
         let data = match self.file {
             None => ColourData::Memory(self.mem),
             Some(file) => {
@@ -645,7 +681,9 @@ impl ColourSink {
         Ok(Colours {
             data,
             count: self.count,
+            length: self.length,
             crc: self.crc,
+            packed,
         })
     }
 }
@@ -661,13 +699,23 @@ enum ColourData {
 pub struct Colours {
     data: ColourData,
     count: u64,
+    length: u64,
     crc: u32,
+    packed: Option<PackedSummary>,
 }
 
 impl Colours {
     /// The colour section's entry.
     pub fn section(&self) -> SectionInfo {
-        SectionInfo::voxel_colors(self.count, self.crc)
+        match self.packed {
+            None => SectionInfo::voxel_colors(self.count, self.crc),
+            Some(_) => SectionInfo::packed_colors(self.count, self.length, self.crc),
+        }
+    }
+
+    /// What packing measured, if the colours are packed.
+    pub fn packed(&self) -> Option<PackedSummary> {
+        self.packed
     }
 
     /// Whether they went through a temporary file.
@@ -684,7 +732,7 @@ impl Colours {
                 }
                 Ok(())
             }
-            ColourData::File(file) => emit_file(&file.file, self.count * 4, sink),
+            ColourData::File(file) => emit_file(&file.file, self.length, sink),
         }
     }
 }

@@ -175,6 +175,21 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Re-encode a file's colours (raw or packed) as a PACKED_COLORS section
+    /// within a per-channel error; the geometry is copied unchanged.
+    Recompress {
+        /// The .vdag (or .vdag.zst) file with colours.
+        input: PathBuf,
+        /// The .vdag file to write.
+        #[command(flatten)]
+        output: OutputArg,
+        /// Each channel within E of the input's colours (0..=127; 0 = lossless).
+        #[arg(long, value_name = "E", default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=127))]
+        color_error: u8,
+        /// Replace an existing output file.
+        #[arg(long)]
+        force: bool,
+    },
     /// Decompress a .vdag.zst transport file (and validate it).
     Unpack {
         /// The .vdag.zst file.
@@ -302,6 +317,11 @@ struct ConvertArgs {
     /// Store per-voxel colours (materials, textures, vertex, point and palette colours).
     #[arg(long)]
     colors: bool,
+    /// With --colors: store them packed (a PACKED_COLORS section, about a
+    /// tenth of the raw size), each channel within E of the source (0..=127;
+    /// 0 = lossless). Without it colours are stored raw, 4 bytes per voxel.
+    #[arg(long, value_name = "E", requires = "colors", value_parser = clap::value_parser!(u8).range(0..=127))]
+    color_error: Option<u8>,
     /// Input format.
     #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
     input_format: FormatArg,
@@ -384,6 +404,7 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
     opts.point_radius = args.point_radius;
     opts.solid = args.solid;
     opts.colors = args.colors;
+    opts.color_error = args.color_error;
     opts.force = args.force;
     opts.progress = !args.quiet;
     opts.memory_limit = memory_limit;
@@ -466,6 +487,25 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 input.display(),
                 output.display(),
                 100.0 * b as f64 / a.max(1) as f64
+            ))?;
+            Ok(0)
+        }
+        Command::Recompress {
+            input,
+            output,
+            color_error,
+            force,
+        } => {
+            let output = output.path()?;
+            let r = cmd::recompress::recompress(&input, &output, color_error, force)?;
+            print_stdout(&format!(
+                "{}: {} bytes (colours {}) -> {}: {} bytes\ncolours:  {}\n",
+                input.display(),
+                r.input_bytes,
+                r.input_color_bytes,
+                output.display(),
+                r.output_bytes,
+                convert::packed_line(&r.packed)
             ))?;
             Ok(0)
         }

@@ -75,7 +75,7 @@
 //! crashes: run `dagfmt::validate` first when the file is not trusted.
 
 use dagfmt::layout::{AttributeKind, COUNT_SATURATED};
-use dagfmt::{Dag, ErrorCode, FormatError};
+use dagfmt::{ColorTable, Dag, ErrorCode, FormatError};
 use glam::{BVec3A, Vec3A, Vec3Swizzles};
 use rustc_hash::FxHashMap;
 
@@ -419,7 +419,7 @@ pub struct Tracer<'a> {
     /// Whether the vector lanes are sixteen to an AVX-512 vector ([`Lanes`],
     /// resolved).
     pub(crate) wide_lanes: bool,
-    colors: Option<&'a [u8]>,
+    colors: Option<ColorTable<'a>>,
     /// Level of the cells whose union `bounds` encloses.
     bounds_level: u8,
     /// Per direction octant: the box (grid units, mirrored frame) of the
@@ -464,7 +464,7 @@ impl<'a> Tracer<'a> {
             small: dag_bytes <= SMALL_DAG_BYTES,
             gather_loads: Gathers::Auto.loads(),
             wide_lanes: Lanes::Auto.wide(),
-            colors: dag.colors(),
+            colors: dag.color_table(),
             bounds_level: 0,
             bounds: [(Vec3A::ZERO, Vec3A::splat((1u32 << depth) as f32)); 8],
         };
@@ -577,18 +577,16 @@ impl<'a> Tracer<'a> {
         self.depth
     }
 
-    /// The voxel colour section (RGBA8 per voxel in dense index order), if any.
-    pub fn colors(&self) -> Option<&'a [u8]> {
+    /// The voxel colours (raw or packed, by dense index), if any.
+    pub fn colors(&self) -> Option<ColorTable<'a>> {
         self.colors
     }
 
-    /// The RGBA colour of the voxel with dense index `index`, if the file has colours.
+    /// The RGBA colour of the voxel with dense index `index`, if the file has
+    /// colours: read from a raw section, or decoded from a packed one (a fixed
+    /// number of reads, spec §12.6).
     pub fn color(&self, index: u64) -> Option<[u8; 4]> {
-        let at = usize::try_from(index).ok()?.checked_mul(4)?;
-        match self.colors?.get(at..at + 4)? {
-            &[r, g, b, a] => Some([r, g, b, a]),
-            _ => None,
-        }
+        self.colors?.get(index)
     }
 
     /// Grid-space (voxel units) position of a world-space point.

@@ -97,6 +97,11 @@ fn valid_files() -> Vec<Vec<u8>> {
                     .map(|i| [i as u8, 1, 2, 255])
                     .collect();
                 built.set_colors(colors).unwrap();
+            } else if kind == AttributeKind::VoxelCount {
+                let colors: Vec<[u8; 4]> = (0..built.voxel_count())
+                    .map(|i| [(i * 37) as u8, (i / 3) as u8, 2, 255 - (i % 2) as u8])
+                    .collect();
+                built.set_packed_colors(&colors, depth).unwrap();
             }
             files.push(built.to_bytes());
         }
@@ -235,6 +240,36 @@ fn validator_harness_over_committed_and_mutated_files() {
     assert!(committed > 50, "the conformance cases are missing");
     let mutated = run_mutations("validator", fuzzing::validator, 300);
     assert!(mutated >= 4000, "{mutated} mutations");
+}
+
+#[test]
+fn packed_colors_harness_over_committed_random_and_mutated_sections() {
+    let committed = run_committed("packed_colors", &["bin"], fuzzing::packed_colors);
+    let mut rng = Rng(0xC010);
+    let mut runs = 0;
+    for _ in 0..300 {
+        // A valid section of random colours, then mutations of it.
+        let n = rng.below(300);
+        let colors: Vec<[u8; 4]> = (0..n)
+            .map(|i| {
+                let base = (i / (1 + rng.below(20))) as u8;
+                [base, base.wrapping_mul(3), rng.below(4) as u8, 255]
+            })
+            .collect();
+        let bound = rng.below(12) as u8;
+        let (section, _) = dagfmt::packed_colors::encode(&colors, bound).unwrap();
+        let mut input = (n as u16).to_le_bytes().to_vec();
+        input.extend_from_slice(&section);
+        fuzzing::packed_colors(&input);
+        for _ in 0..10 {
+            let mut m = input.clone();
+            let at = rng.below(m.len());
+            m[at] ^= 1 << rng.below(8);
+            fuzzing::packed_colors(&m);
+            runs += 1;
+        }
+    }
+    assert!(committed + runs >= 3000);
 }
 
 #[test]

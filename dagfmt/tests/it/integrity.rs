@@ -62,6 +62,27 @@ fn ball_with_colors() -> Vec<u8> {
     dag.to_bytes()
 }
 
+/// The ball with its colours packed (lossy, E = 3; alpha varies so that
+/// blocks store it): a PACKED_COLORS section with palette and direct blocks.
+fn ball_with_packed_colors() -> Vec<u8> {
+    let mut dag = DagBuilder::from_fn(4, AttributeKind::VoxelCount, |x, y, z| {
+        let d = |c: u32| (f64::from(c) - 7.5).powi(2);
+        d(x) + d(y) + d(z) < 36.0
+    })
+    .expect("ball builds");
+    let colors: Vec<[u8; 4]> = (0..dag.voxel_count())
+        .map(|i| {
+            if i < 300 {
+                [(i / 40) as u8 * 30, 200, (i / 90) as u8, 255]
+            } else {
+                [i as u8, ((i * 7) >> 3) as u8, 0x80, (i % 3) as u8 + 250]
+            }
+        })
+        .collect();
+    dag.set_packed_colors(&colors, 3).expect("colours attach");
+    dag.to_bytes()
+}
+
 /// Depth 5, attribute kind 0, scattered voxels: the random sets are tried in
 /// turn until one gives zero padding between two sections (a node level whose
 /// length is 4 modulo 8).
@@ -188,6 +209,7 @@ fn regions(bytes: &[u8]) -> Vec<Region> {
             SectionKind::NodeLevel => "node_level",
             SectionKind::LeafLevel => "leaf_level",
             SectionKind::VoxelColors => "voxel_colors",
+            SectionKind::PackedColors => "packed_colors",
             SectionKind::UnknownOptional(_) => "optional",
         };
         map.resize((s.offset + s.length) as usize, Region::Section(kind));
@@ -231,6 +253,12 @@ fn walk(bytes: &[u8]) -> u64 {
         let _ = dag.subtree_voxel_count(root);
     }
     let _ = dag.colors().map(|c| c.len());
+    if let Some(table) = dag.color_table() {
+        // Random access and sequential decoding agree, whatever the bytes.
+        for (i, c) in table.iter().enumerate() {
+            assert_eq!(table.get(i as u64), Some(c));
+        }
+    }
     let mut voxels = dag.voxels();
     let mut listed = 0u64;
     while let Some(next) = voxels.next_morton() {
@@ -357,6 +385,16 @@ fn every_bit_flip_in_a_ball_with_colors_is_detected() {
     let summary = flip_every_bit("ball", &bytes);
     print_summary("ball (depth 4, kind 1, colours)", &bytes, &summary);
     assert!(summary.contains_key("section.voxel_colors"));
+}
+
+#[test]
+fn every_bit_flip_in_a_ball_with_packed_colors_is_detected() {
+    let bytes = ball_with_packed_colors();
+    let dag = Dag::open(&bytes).expect("valid");
+    assert!(dag.packed_colors().is_some());
+    let summary = flip_every_bit("packed", &bytes);
+    print_summary("ball (depth 4, kind 1, packed colours)", &bytes, &summary);
+    assert!(summary.contains_key("section.packed_colors"));
 }
 
 #[test]

@@ -897,6 +897,85 @@ rule_cases! {
             crafted_at(assemble(&level), entry(3) + 4),
         ]
     };
+    e080_bad_packed_color_section: BadPackedColorSection => || {
+        let mut twice = sample_spec(AttributeKind::VoxelCount).with_colors();
+        let packed = packed_sample(|_| {});
+        let dag = Dag::open(&packed).unwrap();
+        let data = dag.packed_colors().unwrap().bytes().to_vec();
+        twice.sections.push(Sec::new(SectionKind::PACKED_COLORS, 0, 0, twice.voxel_count, data.clone()));
+        let mut kind0 = sample_spec(AttributeKind::None);
+        kind0.sections.push(Sec::new(SectionKind::PACKED_COLORS, 0, 0, kind0.voxel_count, data.clone()));
+        let mut level = sample_spec(AttributeKind::VoxelCount);
+        let mut s = Sec::new(SectionKind::PACKED_COLORS, 0, 0, level.voxel_count, data);
+        s.level = 2;
+        level.sections.push(s);
+        vec![
+            crafted_at(assemble(&twice), entry(4)),
+            crafted_at(assemble(&kind0), entry(3)),
+            crafted_at(assemble(&level), entry(3) + 4),
+            crafted(packed_sample(|d| d.truncate(20))),
+        ]
+    };
+    e081_bad_color_trailer: BadColorTrailer => || {
+        vec![
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 15] = 7 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 16] = 128 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 14] = 1 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 9] = 1 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 1] = 1 })),
+        ]
+    };
+    e082_bad_color_directory: BadColorDirectory => || packed_breaking(ErrorCode::BadColorDirectory);
+    e083_bad_color_block: BadColorBlock => || packed_breaking(ErrorCode::BadColorBlock);
+    e084_color_block_length: ColorBlockLength => || packed_breaking(ErrorCode::ColorBlockLength);
+    e085_color_block_padding: ColorBlockPadding => || packed_breaking(ErrorCode::ColorBlockPadding);
+    e086_color_index_out_of_range: ColorIndexOutOfRange => || packed_breaking(ErrorCode::ColorIndexOutOfRange);
+    e087_color_value_out_of_range: ColorValueOutOfRange => || packed_breaking(ErrorCode::ColorValueOutOfRange);
+}
+
+/// The sample (attribute kind 1) with a lossless PACKED_COLORS section as
+/// section 3, whose bytes `edit` changes; checksums fixed afterwards.
+fn packed_sample(edit: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
+    let mut spec = sample_spec(AttributeKind::VoxelCount);
+    let colors: Vec<[u8; 4]> = (0..spec.voxel_count)
+        .map(|i| [200 + 10 * (i / 8 % 3) as u8, 100, (i % 2) as u8, 255])
+        .collect();
+    let (mut data, _) = dagfmt::packed_colors::encode(&colors, 0).unwrap();
+    edit(&mut data);
+    spec.sections.push(Sec::new(
+        SectionKind::PACKED_COLORS,
+        0,
+        0,
+        spec.voxel_count,
+        data,
+    ));
+    assemble(&spec)
+}
+
+/// The first one-byte edit of the packed sample's section (each bit flipped,
+/// then the byte set to 0xff) after which the validator reports `code` and
+/// nothing else: a file breaking that rule alone.
+fn packed_breaking(code: ErrorCode) -> Vec<Crafted> {
+    let len = packed_sample(|_| {}).len();
+    for at in 0..len {
+        for edit in (0..8).map(|b| 1u8 << b).chain([0xff]) {
+            let mut hit = false;
+            let bytes = packed_sample(|d| {
+                if let Some(x) = d.get_mut(at) {
+                    *x = if edit == 0xff { 0xff } else { *x ^ edit };
+                    hit = true;
+                }
+            });
+            if !hit {
+                continue;
+            }
+            let found = codes(&bytes);
+            if found == BTreeSet::from([code]) {
+                return vec![crafted(bytes)];
+            }
+        }
+    }
+    panic!("no one-byte edit breaks {code} alone");
 }
 
 /// Recomputes the header checksum only (section checksums left as they are).

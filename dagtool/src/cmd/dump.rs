@@ -236,6 +236,7 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
             Some(Some(SectionKind::NodeLevel)) => "NODE_LEVEL",
             Some(Some(SectionKind::LeafLevel)) => "LEAF_LEVEL",
             Some(Some(SectionKind::VoxelColors)) => "VOXEL_COLORS",
+            Some(Some(SectionKind::PackedColors)) => "PACKED_COLORS",
             Some(Some(SectionKind::UnknownOptional(_))) => "unknown optional",
             Some(None) => "unknown required",
             None => "?",
@@ -416,6 +417,24 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
                 at,
                 4,
                 format!("voxel {i}: rgba({}, {}, {}, {})", c[0], c[1], c[2], c[3]),
+            );
+        }
+    }
+    if let Some(packed) = dag.packed_colors() {
+        let offset = packed.bytes().as_ptr() as usize - bytes.as_ptr() as usize;
+        let t = packed.trailer();
+        l.heading(format!(
+            "packed colours: {} colours in {} bytes at {offset:#x} (error bound {}, measured {}), dense voxel index order, decoded",
+            packed.len(),
+            packed.bytes().len(),
+            t.error_bound,
+            t.max_error
+        ));
+        for (i, c) in packed.iter().take(nodes as usize).enumerate() {
+            let _ = writeln!(
+                l.out,
+                "voxel {i}: rgba({}, {}, {}, {})",
+                c[0], c[1], c[2], c[3]
             );
         }
     }

@@ -85,12 +85,15 @@ fn render_text(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
         out,
         "sections:        {}{}",
         h.section_count,
-        if dag.colors().is_some() {
+        if dag.color_table().is_some() {
             " (with voxel colours)"
         } else {
             ""
         }
     );
+    if let Some(line) = colors_line(dag) {
+        let _ = writeln!(out, "colours:         {line}");
+    }
     let _ = writeln!(out, "header crc:      {:#010x}", h.header_crc);
     let _ = writeln!(out);
     let _ = writeln!(
@@ -196,7 +199,8 @@ fn render_json(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
         "required_features": h.required_features,
         "optional_features": h.optional_features,
         "section_count": h.section_count,
-        "has_colors": dag.colors().is_some(),
+        "has_colors": dag.color_table().is_some(),
+        "colors": colors_json(dag),
         "file_bytes": s.file_bytes,
         "level_bytes": s.level_bytes,
         "dag_nodes": s.dag_nodes,
@@ -208,4 +212,65 @@ fn render_json(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
         "levels": levels,
     });
     serde_json::to_string_pretty(&doc).expect("JSON values serialize")
+}
+
+/// Bits per voxel of the colour section, and that against raw 24-bit RGB.
+fn color_bits(dag: &Dag<'_>, section_bytes: usize) -> (f64, f64) {
+    let n = dag.header().voxel_count.max(1) as f64;
+    let bits = section_bytes as f64 * 8.0 / n;
+    (bits, bits / 24.0)
+}
+
+/// The colour section in one line: raw or packed, its size per voxel, and
+/// (packed) the error bound, the measured maximum error and PSNR.
+fn colors_line(dag: &Dag<'_>) -> Option<String> {
+    if let Some(raw) = dag.colors() {
+        let (bits, ratio) = color_bits(dag, raw.len());
+        return Some(format!(
+            "raw RGBA8, {} bytes: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB",
+            raw.len(),
+            ratio * 100.0
+        ));
+    }
+    let p = dag.packed_colors()?;
+    let (bits, ratio) = color_bits(dag, p.bytes().len());
+    let t = p.trailer();
+    Some(format!(
+        "packed, {} bytes: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, measured max error {}, PSNR {}",
+        p.bytes().len(),
+        ratio * 100.0,
+        t.error_bound,
+        t.max_error,
+        crate::convert::psnr_text(t.psnr(p.len()))
+    ))
+}
+
+fn colors_json(dag: &Dag<'_>) -> serde_json::Value {
+    if let Some(raw) = dag.colors() {
+        let (bits, ratio) = color_bits(dag, raw.len());
+        return serde_json::json!({
+            "section": "VOXEL_COLORS",
+            "bytes": raw.len(),
+            "bits_per_voxel": bits,
+            "ratio_to_rgb24": ratio,
+            "error_bound": 0,
+            "max_error": 0,
+            "psnr_db": null,
+        });
+    }
+    let Some(p) = dag.packed_colors() else {
+        return serde_json::Value::Null;
+    };
+    let (bits, ratio) = color_bits(dag, p.bytes().len());
+    let t = p.trailer();
+    let psnr = t.psnr(p.len());
+    serde_json::json!({
+        "section": "PACKED_COLORS",
+        "bytes": p.bytes().len(),
+        "bits_per_voxel": bits,
+        "ratio_to_rgb24": ratio,
+        "error_bound": t.error_bound,
+        "max_error": t.max_error,
+        "psnr_db": psnr.is_finite().then_some(psnr),
+    })
 }

@@ -1,8 +1,9 @@
-//! The file commands: `validate`, `info`, `dump`, `pack`, `unpack`.
+//! The file commands: `validate`, `info`, `dump`, `pack`, `unpack`, `recompress`.
 
 pub mod dump;
 pub mod info;
 pub mod pack;
+pub mod recompress;
 pub mod validate;
 
 use std::path::Path;

@@ -18,6 +18,7 @@ mod fuzz_smoke;
 mod mapped_files;
 mod meshes;
 mod out_of_core;
+mod packed_colors;
 mod readme;
 mod solid;
 mod surface;

@@ -8,4 +8,5 @@ mod common;
 mod gpu;
 mod lit;
 mod oracle;
+mod packed_colors;
 mod props;

@@ -32,6 +32,7 @@ pub mod morton;
 pub mod output;
 pub mod reader;
 pub mod stats;
+pub mod symmetry;
 pub mod transport;
 pub mod validate;
 

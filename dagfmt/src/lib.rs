@@ -34,6 +34,7 @@ pub mod reader;
 pub mod stats;
 pub mod symmetry;
 pub mod transport;
+pub mod v2;
 pub mod validate;
 
 pub use builder::DagBuilder;

@@ -287,6 +287,11 @@ pub fn canonicalize(
     let mut leaves = Vec::new();
     let mut refs: Vec<ClassRef> = Vec::new();
     let mut words: Vec<u32> = Vec::new();
+    // Per class of the level below: its stabiliser, as a bit set of the
+    // transforms that leave its stored member unchanged. References to a
+    // symmetric class are normalised to the least transform of their coset,
+    // so that mirror images compare equal.
+    let mut stabs: Vec<u64> = Vec::new();
     {
         let mut classes: HashMap<u64, u32, FxBuildHasher> = HashMap::default();
         let section = &levels[leaf_level];
@@ -307,6 +312,11 @@ pub fn canonicalize(
             let next = classes.len() as u32;
             let class = *classes.entry(canon).or_insert_with(|| {
                 leaves.push(canon);
+                stabs.push(
+                    (0..leaf_group.order())
+                        .filter(|&t| tables.leaf(t, canon) == canon)
+                        .fold(0u64, |a, t| a | 1 << t),
+                );
                 next
             });
             refs.push(ClassRef {
@@ -324,6 +334,7 @@ pub fn canonicalize(
         // the offsets (increasing, as the walk goes) and their references.
         let mut next_words: Vec<u32> = Vec::new();
         let mut next_refs: Vec<ClassRef> = Vec::new();
+        let mut next_stabs: Vec<u64> = Vec::new();
         let mut word = 0u64;
         let units = section.units();
         while word < units {
@@ -349,14 +360,16 @@ pub fn canonicalize(
                             format!("level {level}: pointer {p} names no node"),
                         ));
                     };
-                    key.slots[slot as usize] = NodeKey::encode(r);
+                    key.slots[slot as usize] = NodeKey::encode(ClassRef {
+                        class: r.class,
+                        transform: normalize(&tables, r.transform, stabs[r.class as usize]),
+                    });
                 }
             }
-            let (canon, t) = if level == 0 {
-                (key, 0)
-            } else {
-                let mut best = (key, 0u8);
-                for t in 1..node_group.order() {
+            // The forms under every transform of the group (the root: itself).
+            let order = if level == 0 { 1 } else { node_group.order() };
+            let forms: Vec<NodeKey> = (0..order)
+                .map(|t| {
                     let mut k = NodeKey {
                         slots: [0; 8],
                         attribute: key.attribute,
@@ -366,19 +379,34 @@ pub fn canonicalize(
                             k.slots[usize::from(tables.octant(t, slot))] =
                                 NodeKey::encode(ClassRef {
                                     class: r.class,
-                                    transform: tables.compose(t, r.transform),
+                                    transform: normalize(
+                                        &tables,
+                                        tables.compose(t, r.transform),
+                                        stabs[r.class as usize],
+                                    ),
                                 });
                         }
                     }
-                    if k < best.0 {
-                        best = (k, t);
-                    }
-                }
-                best
-            };
+                    k
+                })
+                .collect();
+            let (t, canon) = forms
+                .iter()
+                .enumerate()
+                .min_by(|a, b| a.1.cmp(b.1).then(a.0.cmp(&b.0)))
+                .map(|(t, k)| (t as u8, *k))
+                .expect("at least the identity");
             let next = classes.len() as u32;
             let class = *classes.entry(canon).or_insert_with(|| {
                 stored.push(canon);
+                let back = tables.inverse(t);
+                next_stabs.push(
+                    forms
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, f)| **f == canon)
+                        .fold(0u64, |a, (u, _)| a | 1 << tables.compose(u as u8, back)),
+                );
                 next
             });
             let r = ClassRef {
@@ -392,6 +420,7 @@ pub fn canonicalize(
         node_levels[level] = stored;
         refs = next_refs;
         words = next_words;
+        stabs = next_stabs;
     }
     Ok(SymDag {
         leaf_group,
@@ -399,6 +428,16 @@ pub fn canonicalize(
         node_levels,
         leaves,
     })
+}
+
+/// The least transform of the coset `t ∘ stab`: the references `t ∘ s`,
+/// `s` in the stabiliser of the target, all name the same logical child.
+fn normalize(tables: &Transforms, t: u8, stab: u64) -> u8 {
+    (0..48u8)
+        .filter(|&s| stab >> s & 1 != 0)
+        .map(|s| tables.compose(t, s))
+        .min()
+        .unwrap_or(t)
 }
 
 impl SymDag {

@@ -811,8 +811,17 @@ mod tests {
                 let [x, y, z] = crate::morton::decode(code);
                 prop_assert_eq!(enc.voxel_index(code).unwrap(), dag.voxel_index(x, y, z).unwrap());
             }
-            // Deterministic, and the same for a mirrored copy's level sizes.
-            prop_assert_eq!(encode(&dag).unwrap(), enc);
+            // Deterministic.
+            prop_assert_eq!(encode(&dag).unwrap(), enc.clone());
+            // Without attributes: the same voxels and, record for record, the
+            // same sizes (§23.9: the 24 bits are stored for every kind).
+            let none = DagBuilder::from_voxels(depth, AttributeKind::None, vs.iter().copied()).unwrap().to_bytes();
+            let enc0 = encode(&Dag::open(&none).unwrap()).unwrap();
+            prop_assert_eq!(codes_from(&enc0), expected);
+            for (a, b) in enc.levels.iter().zip(&enc0.levels) {
+                prop_assert_eq!(a.bytes.len(), b.bytes.len());
+                prop_assert_eq!(a.widths, b.widths);
+            }
         }
     }
 }

@@ -35,7 +35,9 @@ pub mod output;
 pub mod packed_colors;
 pub mod reader;
 pub mod stats;
+pub mod symmetry;
 pub mod transport;
+pub mod v2;
 pub mod validate;
 
 pub use builder::DagBuilder;

@@ -1,0 +1,827 @@
+//! Format 2.0 level encoding (spec/VDAG.md §23, draft): the encoder of the
+//! level sections from a 1.0 DAG, and [`decode_node`], the one decoder of a
+//! 2.0 node record and its references.
+//!
+//! This module encodes and decodes the *level sections* of §23.2–§23.7; the
+//! 2.0 file container (header with version 2, the widths in the section
+//! table), its open checks, the validator rules E070–E079 and the tools'
+//! `--format-version 2` are not written yet, so no tool writes or reads 2.0
+//! files (spec §23.11).
+//!
+//! [`encode`] works level by level: it merges the 1.0 DAG under the
+//! reflections ([`crate::symmetry::canonicalize`]), ranks each level's
+//! classes by their intrinsic keys bottom-up (§23.6), orders the levels top
+//! down (§23.7) and lays them out bottom-up. The result depends only on the
+//! voxels (and attributes), not on the 1.0 file's node order.
+
+use crate::error::{ErrorCode, FormatError};
+use crate::reader::Dag;
+use crate::symmetry::{Group, NodeKey, canonicalize, reflect_leaf};
+
+/// Largest reference width in bits (§23.2).
+pub const MAX_WIDTH: u32 = 40;
+
+/// One encoded level section.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct EncodedLevel {
+    /// The section bytes: records (interior level) or 64-bit leaf masks.
+    pub bytes: Vec<u8>,
+    /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
+    pub widths: [u8; 3],
+    /// Records or leaves in the section.
+    pub item_count: u64,
+    /// Whether this is the leaf level.
+    pub is_leaf: bool,
+}
+
+/// The level sections of a 2.0 file, root first.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Encoded {
+    /// Depth D.
+    pub depth: u8,
+    /// Level sections 0 ..= D − 2.
+    pub levels: Vec<EncodedLevel>,
+}
+
+impl Encoded {
+    /// Bytes of the level sections.
+    pub fn level_bytes(&self) -> u64 {
+        self.levels.iter().map(|l| l.bytes.len() as u64).sum()
+    }
+}
+
+/// Where a child of a decoded node is (§23.2, §23.3).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Child {
+    /// A shared child: the target (byte offset of a record, or leaf index)
+    /// and the reference's reflection.
+    Shared {
+        /// Byte offset in the child level, or leaf index.
+        target: u64,
+        /// Reflection r (§23.4).
+        reflection: u8,
+    },
+    /// The `index`-th sequential child (from 0, in physical slot order): it
+    /// starts `index` records (or leaves) after the node's base reference;
+    /// its reflection is 0.
+    Sequential {
+        /// The target of the node's base reference.
+        base: u64,
+        /// Position among the node's sequential children.
+        index: u32,
+    },
+}
+
+/// A decoded 2.0 node record.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Node2 {
+    /// The 32-bit header word (child mask by physical slot, attribute).
+    pub header: u32,
+    /// Size of the record in bytes.
+    pub size: u32,
+    /// Per physical slot: the child, if present.
+    pub children: [Option<Child>; 8],
+}
+
+impl Node2 {
+    /// The child mask (by physical slot).
+    pub fn child_mask(&self) -> u8 {
+        self.header as u8
+    }
+
+    /// The 24 attribute bits.
+    pub fn attribute(&self) -> u32 {
+        self.header >> 8
+    }
+}
+
+fn truncated(at: u64) -> FormatError {
+    // E071 of §23.10 once the 2.0 validator exists; E042 is its 1.0 form.
+    FormatError::new(
+        ErrorCode::TruncatedNode,
+        at,
+        "2.0 node record runs past the end of its level".to_string(),
+    )
+}
+
+/// Reads `width` bits at bit `bit` of `bytes`, least significant bit first.
+fn read_bits(bytes: &[u8], bit: u64, width: u32) -> Option<u64> {
+    let mut v = 0u64;
+    let mut got = 0u32;
+    let mut pos = bit;
+    while got < width {
+        let byte = *bytes.get(usize::try_from(pos / 8).ok()?)?;
+        let shift = (pos % 8) as u32;
+        let take = (8 - shift).min(width - got);
+        let part = (u64::from(byte) >> shift) & ((1u64 << take) - 1);
+        v |= part << got;
+        got += take;
+        pos += u64::from(take);
+    }
+    Some(v)
+}
+
+/// Decodes the node record at byte `offset` of a 2.0 interior level with
+/// `widths` (§23.2): its header, its size and each child's reference. Never
+/// panics: a record that runs past `level` is an error (E071).
+pub fn decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, FormatError> {
+    if widths.iter().any(|&w| u32::from(w) > MAX_WIDTH) {
+        // E070 of §23.10 once the 2.0 container exists; E026 is its 1.0 form.
+        return Err(FormatError::new(
+            ErrorCode::BadPointerWidth,
+            offset,
+            format!("2.0 reference widths {widths:?} exceed {MAX_WIDTH} bits"),
+        ));
+    }
+    if offset >= level.len() as u64 {
+        return Err(truncated(offset));
+    }
+    let start = offset as usize;
+    let header = crate::reader::read_u32(level, start).ok_or_else(|| truncated(offset))?;
+    let mask = header as u8;
+    let k = mask.count_ones();
+    let stream = level.get(start + 4..).ok_or_else(|| truncated(offset))?;
+    let mut codes = [0u8; 9];
+    for (i, c) in codes.iter_mut().enumerate().take(k as usize) {
+        *c = read_bits(stream, 2 * i as u64, 2).ok_or_else(|| truncated(offset))? as u8;
+    }
+    let has_base = codes[..k as usize].contains(&0);
+    let m = k + u32::from(has_base);
+    if has_base {
+        codes[k as usize] =
+            read_bits(stream, 2 * u64::from(k), 2).ok_or_else(|| truncated(offset))? as u8;
+    }
+    let width = |code: u8| -> u32 { u32::from(widths[usize::from(code.max(1)) - 1]) };
+    let mut bit = 2 * u64::from(m);
+    let mut children = [None; 8];
+    let mut rank = 0usize;
+    for (slot, child) in children.iter_mut().enumerate() {
+        if mask >> slot & 1 == 0 {
+            continue;
+        }
+        let code = codes[rank];
+        rank += 1;
+        if code != 0 {
+            let w = width(code);
+            let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
+            bit += u64::from(w);
+            *child = Some(Child::Shared {
+                target: v >> 3,
+                reflection: (v & 7) as u8,
+            });
+        }
+    }
+    let base = if has_base {
+        let w = width(codes[k as usize]);
+        let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
+        bit += u64::from(w);
+        v
+    } else {
+        0
+    };
+    let mut index = 0u32;
+    let mut rank = 0usize;
+    for (slot, child) in children.iter_mut().enumerate() {
+        if mask >> slot & 1 == 0 {
+            continue;
+        }
+        if codes[rank] == 0 {
+            *child = Some(Child::Sequential { base, index });
+            index += 1;
+        }
+        rank += 1;
+    }
+    let size = 4 + bit.div_ceil(8);
+    if start as u64 + size > level.len() as u64 {
+        return Err(truncated(offset));
+    }
+    Ok(Node2 {
+        header,
+        size: size as u32,
+        children,
+    })
+}
+
+/// The address of a child found by [`decode_node`] in a child level whose
+/// records are `child_level` (`None`: the child level is the leaf level, in
+/// which sequential children are `base + index`). In an interior child level
+/// a sequential child's offset adds the sizes of the sequential siblings
+/// before it (§23.3).
+pub fn child_address(
+    child: Child,
+    child_level: Option<(&[u8], [u8; 3])>,
+) -> Result<(u64, u8), FormatError> {
+    match child {
+        Child::Shared { target, reflection } => Ok((target, reflection)),
+        Child::Sequential { base, index } => match child_level {
+            None => Ok((base.saturating_add(u64::from(index)), 0)),
+            Some((bytes, widths)) => {
+                let mut at = base;
+                for _ in 0..index {
+                    at = at.saturating_add(u64::from(decode_node(bytes, at, widths)?.size));
+                }
+                Ok((at, 0))
+            }
+        },
+    }
+}
+
+/// A class of the merged DAG in intrinsic terms: children as `1 + 8·rank + r`
+/// by canonical physical slot (0 = none), and the attribute.
+type Key = NodeKey;
+
+/// The least reflection in the coset `t ^ stab` (`stab` a bit set of reflections).
+fn norm(t: u8, stab: u8) -> u8 {
+    (0..8u8)
+        .filter(|s| stab >> s & 1 != 0)
+        .map(|s| t ^ s)
+        .min()
+        .unwrap_or(t)
+}
+
+/// Reflects a key by `r`: slot p moves to p ^ r, each reference's reflection
+/// is XORed with r and normalised in its child's stabiliser.
+fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
+    let mut out = Key {
+        slots: [0; 8],
+        attribute: key.attribute,
+    };
+    for p in 0..8usize {
+        let s = key.slots[p];
+        if s != 0 {
+            let rank = (s - 1) >> 3;
+            let t = ((s - 1) & 7) as u8;
+            let t = norm(t ^ r, child_stab[rank as usize]);
+            out.slots[p ^ usize::from(r)] = 1 + (rank << 3) + u64::from(t);
+        }
+    }
+    out
+}
+
+/// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23).
+pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
+    let depth = dag.depth() as u8;
+    let sym = canonicalize(dag, Group::Reflections, Group::Reflections)?;
+    let leaf_level = sym.node_levels.len();
+    if dag.is_empty() {
+        let mut levels = vec![
+            EncodedLevel {
+                bytes: Vec::new(),
+                widths: [0; 3],
+                item_count: 0,
+                is_leaf: false,
+            };
+            leaf_level
+        ];
+        levels.push(EncodedLevel {
+            bytes: Vec::new(),
+            widths: [0; 3],
+            item_count: 0,
+            is_leaf: true,
+        });
+        return Ok(Encoded { depth, levels });
+    }
+    // Bottom-up: intrinsic ranks, canonical members, stabilisers.
+    // Leaves: canonicalize stores the least reflected mask (§23.6).
+    let mut order: Vec<u32> = (0..sym.leaves.len() as u32).collect();
+    order.sort_unstable_by_key(|&c| sym.leaves[c as usize]);
+    let leaves: Vec<u64> = order.iter().map(|&c| sym.leaves[c as usize]).collect();
+    let mut rank_of = vec![0u32; order.len()];
+    for (rank, &c) in order.iter().enumerate() {
+        rank_of[c as usize] = rank as u32;
+    }
+    let mut stab: Vec<u8> = leaves
+        .iter()
+        .map(|&m| {
+            (0..8u8)
+                .filter(|&r| reflect_leaf(m, r) == m)
+                .fold(0, |a, r| a | 1 << r)
+        })
+        .collect();
+    // `adj[class]`: the reflection from the stored member of canonicalize's
+    // class to the canonical member (0 for leaves).
+    let mut adj = vec![0u8; order.len()];
+    let mut canon_levels: Vec<Vec<Key>> = vec![Vec::new(); leaf_level];
+    let mut stabs: Vec<Vec<u8>> = vec![Vec::new(); leaf_level + 1];
+    for level in (0..leaf_level).rev() {
+        let nodes = &sym.node_levels[level];
+        let mut keys = Vec::with_capacity(nodes.len());
+        let mut new_adj = Vec::with_capacity(nodes.len());
+        let mut new_stab = Vec::with_capacity(nodes.len());
+        for node in nodes {
+            // The stored member in intrinsic terms.
+            let mut key = Key {
+                slots: [0; 8],
+                attribute: node.attribute,
+            };
+            for p in 0..8 {
+                if let Some(r) = node.child(p) {
+                    let c = r.class as usize;
+                    let rank = rank_of[c];
+                    let t = norm(r.transform ^ adj[c], stab[rank as usize]);
+                    key.slots[p] = 1 + (u64::from(rank) << 3) + u64::from(t);
+                }
+            }
+            if level == 0 {
+                keys.push(key);
+                new_adj.push(0);
+                new_stab.push(1);
+                continue;
+            }
+            let forms: Vec<Key> = (0..8u8).map(|r| reflect_key(&key, r, &stab)).collect();
+            let (best_r, best) = forms
+                .iter()
+                .enumerate()
+                .min_by(|a, b| a.1.cmp(b.1).then(a.0.cmp(&b.0)))
+                .map(|(r, k)| (r as u8, *k))
+                .expect("eight forms");
+            let mut st = 0u8;
+            for (r, f) in forms.iter().enumerate() {
+                if *f == best {
+                    st |= 1 << (r as u8 ^ best_r);
+                }
+            }
+            keys.push(best);
+            new_adj.push(best_r);
+            new_stab.push(st);
+        }
+        let mut order: Vec<u32> = (0..keys.len() as u32).collect();
+        order.sort_unstable_by(|&a, &b| keys[a as usize].cmp(&keys[b as usize]));
+        let mut new_rank_of = vec![0u32; order.len()];
+        for (rank, &c) in order.iter().enumerate() {
+            new_rank_of[c as usize] = rank as u32;
+        }
+        canon_levels[level] = order.iter().map(|&c| keys[c as usize]).collect();
+        stabs[level + 1] = std::mem::take(&mut stab);
+        stab = order.iter().map(|&c| new_stab[c as usize]).collect();
+        adj = new_adj;
+        rank_of = new_rank_of;
+    }
+    stabs[0] = stab;
+
+    // Top-down: each level's order (rank, applied reflection) and, per
+    // stored node, the position of its first sequential child.
+    let mut counts: Vec<Vec<u32>> = vec![vec![1]];
+    for (level, keys) in canon_levels.iter().enumerate() {
+        let n = if level + 1 == leaf_level {
+            leaves.len()
+        } else {
+            canon_levels[level + 1].len()
+        };
+        let mut c = vec![0u32; n];
+        for key in keys {
+            for &s in &key.slots {
+                if s != 0 {
+                    c[((s - 1) >> 3) as usize] += 1;
+                }
+            }
+        }
+        counts.push(c);
+    }
+    // stored[level]: (rank, reflection applied to the canonical member).
+    let mut stored: Vec<Vec<(u32, u8)>> = vec![vec![(0, 0)]];
+    let mut seq_first: Vec<Vec<u64>> = Vec::new();
+    for level in 0..leaf_level {
+        let c = &counts[level + 1];
+        let mut next: Vec<(u32, u8)> = (0..c.len() as u32)
+            .filter(|&i| c[i as usize] > 1)
+            .map(|i| (i, 0))
+            .collect();
+        next.sort_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
+        let mut firsts = Vec::with_capacity(stored[level].len());
+        for &(rank, applied) in &stored[level] {
+            let key = reflect_key(
+                &canon_levels[level][rank as usize],
+                applied,
+                &stabs[level + 1],
+            );
+            firsts.push(next.len() as u64);
+            for &s in &key.slots {
+                if s != 0 {
+                    let child = ((s - 1) >> 3) as u32;
+                    if c[child as usize] == 1 {
+                        next.push((child, ((s - 1) & 7) as u8));
+                    }
+                }
+            }
+        }
+        seq_first.push(firsts);
+        stored.push(next);
+    }
+
+    // Bottom-up layout.
+    let mut levels = vec![
+        EncodedLevel {
+            bytes: Vec::new(),
+            widths: [0; 3],
+            item_count: 0,
+            is_leaf: false,
+        };
+        leaf_level + 1
+    ];
+    let mut leaf_bytes = Vec::with_capacity(8 * stored[leaf_level].len());
+    // Address of each shared child by rank (sequential ones are found by position).
+    let mut addr_of_rank = vec![0u64; leaves.len()];
+    let mut addr_of_pos: Vec<u64> = Vec::with_capacity(stored[leaf_level].len());
+    for (pos, &(rank, applied)) in stored[leaf_level].iter().enumerate() {
+        leaf_bytes.extend_from_slice(&reflect_leaf(leaves[rank as usize], applied).to_le_bytes());
+        if counts[leaf_level][rank as usize] > 1 {
+            addr_of_rank[rank as usize] = pos as u64;
+        }
+        addr_of_pos.push(pos as u64);
+    }
+    levels[leaf_level] = EncodedLevel {
+        item_count: stored[leaf_level].len() as u64,
+        bytes: leaf_bytes,
+        widths: [0; 3],
+        is_leaf: true,
+    };
+    for level in (0..leaf_level).rev() {
+        let c = &counts[level + 1];
+        // Each record's references: (code placeholder, value, is base).
+        let mut records: Vec<(u32, Vec<Option<u64>>, Option<u64>)> = Vec::new();
+        let mut hist = [0u64; 65];
+        let bits_of = |v: u64| (64 - v.leading_zeros()).max(1);
+        for (pos, &(rank, applied)) in stored[level].iter().enumerate() {
+            let key = reflect_key(
+                &canon_levels[level][rank as usize],
+                applied,
+                &stabs[level + 1],
+            );
+            let mut refs = Vec::new();
+            let mut mask = 0u8;
+            let mut any_seq = false;
+            for (p, &s) in key.slots.iter().enumerate() {
+                if s == 0 {
+                    continue;
+                }
+                mask |= 1 << p;
+                let child = ((s - 1) >> 3) as usize;
+                if c[child] == 1 {
+                    refs.push(None);
+                    any_seq = true;
+                } else {
+                    let v = (addr_of_rank[child] << 3) | ((s - 1) & 7);
+                    hist[bits_of(v) as usize] += 1;
+                    refs.push(Some(v));
+                }
+            }
+            let base = any_seq.then(|| addr_of_pos[seq_first[level][pos] as usize]);
+            if let Some(b) = base {
+                hist[bits_of(b) as usize] += 1;
+            }
+            records.push((u32::from(mask) | (key.attribute << 8), refs, base));
+        }
+        let widths = best_widths(&hist).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::LevelTooLarge,
+                0,
+                format!("level {level}: a reference needs more than {MAX_WIDTH} bits"),
+            )
+        })?;
+        let code_of = |v: u64| -> (u8, u32) {
+            let b = bits_of(v);
+            let i = widths
+                .iter()
+                .position(|&w| u32::from(w) >= b)
+                .expect("the widest holds all");
+            (i as u8 + 1, u32::from(widths[i]))
+        };
+        let mut bytes = Vec::new();
+        let mut next_addr_of_pos = Vec::with_capacity(records.len());
+        let mut next_addr_of_rank = vec![0u64; canon_levels[level].len()];
+        for (pos, (header, refs, base)) in records.iter().enumerate() {
+            let offset = bytes.len() as u64;
+            next_addr_of_pos.push(offset);
+            let (rank, _) = stored[level][pos];
+            if level == 0 || counts[level][rank as usize] > 1 {
+                next_addr_of_rank[rank as usize] = offset;
+            }
+            let mut w = BitWriter::default();
+            for r in refs {
+                w.put(u64::from(r.map_or(0, |v| code_of(v).0)), 2);
+            }
+            if let Some(b) = base {
+                w.put(u64::from(code_of(*b).0), 2);
+            }
+            for v in refs.iter().flatten() {
+                w.put(*v, code_of(*v).1);
+            }
+            if let Some(b) = base {
+                w.put(*b, code_of(*b).1);
+            }
+            bytes.extend_from_slice(&header.to_le_bytes());
+            bytes.extend_from_slice(&w.bytes);
+        }
+        levels[level] = EncodedLevel {
+            item_count: records.len() as u64,
+            bytes,
+            widths,
+            is_leaf: false,
+        };
+        addr_of_pos = next_addr_of_pos;
+        addr_of_rank = next_addr_of_rank;
+    }
+    Ok(Encoded { depth, levels })
+}
+
+/// The widths of §23.2: the least triple (w_1 first) minimising the level's
+/// reference bits, `hist[b]` references needing `b` bits. `None` when a
+/// reference needs more than [`MAX_WIDTH`] bits.
+pub fn best_widths(hist: &[u64; 65]) -> Option<[u8; 3]> {
+    let max = (1..65).rev().find(|&b| hist[b] != 0).unwrap_or(1) as u32;
+    if max > MAX_WIDTH {
+        return None;
+    }
+    let mut best: Option<([u8; 3], u64)> = None;
+    for w1 in 1..=max {
+        for w2 in w1..=max {
+            let ws = [w1, w2, max];
+            let mut cost = 0u64;
+            for (b, &n) in hist.iter().enumerate().skip(1) {
+                if n != 0 {
+                    let w = ws.iter().copied().find(|&w| w >= b as u32).unwrap_or(max);
+                    cost += n * u64::from(w);
+                }
+            }
+            if best.is_none_or(|(_, c)| cost < c) {
+                best = Some(([w1 as u8, w2 as u8, max as u8], cost));
+            }
+        }
+    }
+    best.map(|(w, _)| w)
+}
+
+#[derive(Default)]
+struct BitWriter {
+    bytes: Vec<u8>,
+    bit: u64,
+}
+
+impl BitWriter {
+    fn put(&mut self, value: u64, width: u32) {
+        for i in 0..width {
+            if self.bit.is_multiple_of(8) {
+                self.bytes.push(0);
+            }
+            if value >> i & 1 != 0 {
+                let last = self.bytes.len() - 1;
+                self.bytes[last] |= 1 << (self.bit % 8);
+            }
+            self.bit += 1;
+        }
+    }
+}
+
+impl Encoded {
+    /// Walks the encoded levels from the root with the accumulated reflection
+    /// of §23.4 and calls `leaf` with each leaf's Morton prefix (its brick's
+    /// code) and logical mask, in Morton order. Decodes through
+    /// [`decode_node`] and [`child_address`] only.
+    pub fn for_each_leaf(&self, mut leaf: impl FnMut(u64, u64)) -> Result<(), FormatError> {
+        let last = self.levels.len() - 1;
+        if self.levels[last].item_count == 0 {
+            return Ok(());
+        }
+        self.walk(0, 0, 0, 0, &mut leaf)
+    }
+
+    fn leaf_mask(&self, index: u64) -> Result<u64, FormatError> {
+        let bytes = &self.levels[self.levels.len() - 1].bytes;
+        usize::try_from(index)
+            .ok()
+            .and_then(|i| crate::reader::read_u64(bytes, i * 8))
+            .ok_or_else(|| {
+                FormatError::new(
+                    ErrorCode::PointerOutOfRange,
+                    index,
+                    "leaf index past the leaf level".to_string(),
+                )
+            })
+    }
+
+    fn walk(
+        &self,
+        level: usize,
+        at: u64,
+        acc: u8,
+        prefix: u64,
+        leaf: &mut impl FnMut(u64, u64),
+    ) -> Result<(), FormatError> {
+        let last = self.levels.len() - 1;
+        if level == last {
+            leaf(prefix, reflect_leaf(self.leaf_mask(at)?, acc));
+            return Ok(());
+        }
+        let lv = &self.levels[level];
+        let node = decode_node(&lv.bytes, at, lv.widths)?;
+        let child_level = (level + 1 < last).then(|| {
+            let l = &self.levels[level + 1];
+            (l.bytes.as_slice(), l.widths)
+        });
+        for c in 0..8u8 {
+            if let Some(child) = node.children[usize::from(c ^ acc)] {
+                let (target, r) = child_address(child, child_level)?;
+                self.walk(level + 1, target, acc ^ r, prefix * 8 + u64::from(c), leaf)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The dense voxel index (§12.3) of the voxel with Morton code `code`, by
+    /// the sibling sums of §23.5 (attribute kind 1 with unsaturated counts;
+    /// for tests), or `None` when it is not set.
+    pub fn voxel_index(&self, code: u64) -> Result<Option<u64>, FormatError> {
+        let last = self.levels.len() - 1;
+        if self.levels[last].item_count == 0 {
+            return Ok(None);
+        }
+        let mut at = 0u64;
+        let mut acc = 0u8;
+        let mut index = 0u64;
+        for level in 0..last {
+            let lv = &self.levels[level];
+            let node = decode_node(&lv.bytes, at, lv.widths)?;
+            let child_level = (level + 1 < last).then(|| {
+                let l = &self.levels[level + 1];
+                (l.bytes.as_slice(), l.widths)
+            });
+            let c = ((code >> (3 * (last - level) + 3)) & 7) as u8;
+            for p in 0..8u8 {
+                if let Some(child) = node.children[usize::from(p)].filter(|_| p ^ acc < c) {
+                    let (target, _) = child_address(child, child_level)?;
+                    index += if level + 1 == last {
+                        u64::from(self.leaf_mask(target)?.count_ones())
+                    } else {
+                        let l = &self.levels[level + 1];
+                        u64::from(decode_node(&l.bytes, target, l.widths)?.attribute())
+                    };
+                }
+            }
+            let Some(child) = node.children[usize::from(c ^ acc)] else {
+                return Ok(None);
+            };
+            let (target, r) = child_address(child, child_level)?;
+            at = target;
+            acc ^= r;
+        }
+        let mask = reflect_leaf(self.leaf_mask(at)?, acc);
+        let bit = code & 63;
+        Ok((mask >> bit & 1 != 0)
+            .then(|| index + u64::from((mask & ((1u64 << bit) - 1)).count_ones())))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::AttributeKind;
+    use crate::builder::DagBuilder;
+    use proptest::prelude::*;
+
+    fn codes_from(enc: &Encoded) -> Vec<u64> {
+        let mut out = Vec::new();
+        enc.for_each_leaf(|prefix, mut mask| {
+            while mask != 0 {
+                out.push(prefix * 64 + u64::from(mask.trailing_zeros()));
+                mask &= mask - 1;
+            }
+        })
+        .unwrap();
+        out
+    }
+
+    proptest! {
+        // The decoder never panics, whatever the bytes, offset and widths.
+        #[test]
+        fn decoding_any_bytes_never_panics(
+            bytes in proptest::collection::vec(any::<u8>(), 0..64),
+            offset in 0u64..80,
+            widths in any::<[u8; 3]>(),
+            index in 0u32..8,
+        ) {
+            if let Ok(node) = decode_node(&bytes, offset, widths) {
+                prop_assert!(offset + u64::from(node.size) <= bytes.len() as u64);
+                for child in node.children.iter().flatten() {
+                    let _ = child_address(*child, Some((&bytes, widths)));
+                    let _ = child_address(*child, None);
+                }
+            }
+            let _ = child_address(Child::Sequential { base: u64::MAX - 3, index }, None);
+            let _ = child_address(Child::Sequential { base: offset, index }, Some((&bytes, widths)));
+        }
+    }
+
+    #[test]
+    fn widths_minimise_the_reference_bits() {
+        let mut hist = [0u64; 65];
+        hist[3] = 100;
+        hist[12] = 10;
+        hist[20] = 1;
+        assert_eq!(best_widths(&hist), Some([3, 12, 20]));
+        let mut hist = [0u64; 65];
+        hist[5] = 1;
+        assert_eq!(best_widths(&hist), Some([1, 1, 5]));
+        hist[41] = 1;
+        assert_eq!(best_widths(&hist), None);
+    }
+
+    #[test]
+    fn mirrored_subtrees_are_stored_once_and_unique_ones_in_sequence() {
+        // An asymmetric pattern in the lower-x half and its mirror image in
+        // the upper-x half: the root's two children are one class.
+        let pattern = [
+            [1u32, 2, 3],
+            [2, 2, 3],
+            [5, 9, 1],
+            [14, 3, 7],
+            [6, 6, 12],
+            [0, 15, 15],
+        ];
+        let mut vs = Vec::new();
+        for &[x, y, z] in &pattern {
+            vs.push([x, y, z]);
+            vs.push([31 - x, y, z]);
+        }
+        let bytes = DagBuilder::from_voxels(5, AttributeKind::VoxelCount, vs)
+            .unwrap()
+            .to_bytes();
+        let dag = Dag::open(&bytes).unwrap();
+        assert_eq!(dag.levels()[1].node_count, 2);
+        let enc = encode(&dag).unwrap();
+        assert_eq!(enc.levels[1].item_count, 1);
+        let root = decode_node(&enc.levels[0].bytes, 0, enc.levels[0].widths).unwrap();
+        let reflections: Vec<u8> = root
+            .children
+            .iter()
+            .flatten()
+            .map(|c| match c {
+                Child::Shared {
+                    target: 0,
+                    reflection,
+                } => *reflection,
+                other => panic!("root child {other:?}"),
+            })
+            .collect();
+        // One stored member, reached mirrored in x from one child to the other.
+        assert_eq!(reflections.len(), 2);
+        assert_eq!(reflections[0] ^ reflections[1], 1);
+        // Level 1's children are each named once: sequential.
+        let node = decode_node(&enc.levels[1].bytes, 0, enc.levels[1].widths).unwrap();
+        assert!(
+            node.children
+                .iter()
+                .flatten()
+                .all(|c| matches!(c, Child::Sequential { .. }))
+        );
+        assert_eq!(node.size as usize, enc.levels[1].bytes.len());
+        assert_eq!(node.attribute(), pattern.len() as u32);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        // The 2.0 levels hold the 1.0 file's voxels, and the attribute index
+        // under reflections (§23.5) is the 1.0 dense index of every voxel.
+        #[test]
+        fn encoding_keeps_voxels_and_indices(
+            depth in 2u8..=6,
+            voxels in proptest::collection::vec((0u32..64, 0u32..64, 0u32..64), 0..400),
+            blocks in proptest::collection::vec((0u32..8, 0u32..8, 0u32..8), 0..6),
+        ) {
+            let res = 1u32 << depth;
+            let mut vs: Vec<[u32; 3]> = voxels.iter().map(|&(x, y, z)| [x % res, y % res, z % res]).collect();
+            // Solid blocks and their mirror images make shared, symmetric subtrees.
+            for &(bx, by, bz) in &blocks {
+                for d in 0..4 {
+                    vs.push([(bx * 4 + d) % res, (by * 4) % res, (bz * 4 + d) % res]);
+                    vs.push([res - 1 - (bx * 4 + d) % res, (by * 4) % res, (bz * 4 + d) % res]);
+                }
+            }
+            let bytes = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, vs.iter().copied()).unwrap().to_bytes();
+            let dag = Dag::open(&bytes).unwrap();
+            let enc = encode(&dag).unwrap();
+            prop_assert_eq!(enc.levels.len(), usize::from(depth) - 1);
+            let expected: Vec<u64> = dag.voxels().map(|v| {
+                let [x, y, z] = v.unwrap();
+                crate::morton::encode(x, y, z)
+            }).collect();
+            prop_assert_eq!(codes_from(&enc), expected.clone());
+            for &code in expected.iter().step_by(7) {
+                let [x, y, z] = crate::morton::decode(code);
+                prop_assert_eq!(enc.voxel_index(code).unwrap(), dag.voxel_index(x, y, z).unwrap());
+            }
+            // Deterministic.
+            prop_assert_eq!(encode(&dag).unwrap(), enc.clone());
+            // Without attributes: the same voxels and, record for record, the
+            // same sizes (§23.9: the 24 bits are stored for every kind).
+            let none = DagBuilder::from_voxels(depth, AttributeKind::None, vs.iter().copied()).unwrap().to_bytes();
+            let enc0 = encode(&Dag::open(&none).unwrap()).unwrap();
+            prop_assert_eq!(codes_from(&enc0), expected);
+            for (a, b) in enc.levels.iter().zip(&enc0.levels) {
+                prop_assert_eq!(a.bytes.len(), b.bytes.len());
+                prop_assert_eq!(a.widths, b.widths);
+            }
+        }
+    }
+}

@@ -348,10 +348,10 @@ fn every_las_point_format_reads_back_plain_and_compressed() {
                     1.0 - f64::from(i),
                     f64::from(i * i) * 0.01,
                 ];
-                for a in 0..3 {
+                for (a, want) in expected.iter().enumerate() {
                     // The las crate's default scale is 0.001.
                     assert!(
-                        (p.position[a] - expected[a]).abs() <= 0.0005 + 1e-9,
+                        (p.position[a] - want).abs() <= 0.0005 + 1e-9,
                         "{what}: point {i} axis {a}: {:?}",
                         p.position
                     );

@@ -2,7 +2,7 @@
 // traced with `traverse` (trace.wgsl), answered here.
 //
 // The entry parameter and face are computed as the CPU tracer's `found_from`
-// computes them (dagtrace/src/tracer.rs), from the same plane parameters:
+// computes them (dagtrace/src/walk.rs), from the same plane parameters:
 // the latest slab start of the moving axes (ties to the lowest axis), or the
 // segment's start with face 0 when that is earlier. The parameter is then
 // scaled back by 2^-k, exactly (a power of two), to the ray as given. Rays

@@ -359,8 +359,11 @@ fn check_packets(depth: u8, seed: u64) -> Result<(), TestCaseError> {
         "{differ} of {} differ",
         rays.len()
     );
+    // Not vacuous: at least one ray in twenty hits. The cameras aim at
+    // occupied balls, but narrow cones with a short `tmax` can miss more than
+    // one ray in ten (a CI run drew 144 hits of 1536 at depth 10).
     prop_assert!(
-        hit_count * 10 >= rays.len(),
+        hit_count * 20 >= rays.len(),
         "{hit_count} of {} hit",
         rays.len()
     );

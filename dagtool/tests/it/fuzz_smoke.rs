@@ -323,6 +323,28 @@ fn input_format_harnesses_over_committed_and_mutated_files() {
     );
 }
 
+/// The `laz` decompressor asserts that the points asked for are whole records
+/// of its items: a header whose record length disagrees with the LAZ record is
+/// refused first, naming both lengths.
+#[test]
+fn laz_items_of_another_record_length_are_refused() {
+    let mut bytes = las_bytes(7, true);
+    // Point data record length: u16 at byte 105 of the LAS header.
+    let length = u16::from_le_bytes([bytes[105], bytes[106]]);
+    bytes[105..107].copy_from_slice(&(length + 2).to_le_bytes());
+    let err = dagtool::input::las::load_bytes(&bytes, "t.laz")
+        .err()
+        .expect("a record length the LAZ items do not make was accepted")
+        .to_string();
+    assert_eq!(
+        err,
+        format!(
+            "t.laz: the LAZ record's items make points of {length} bytes, but the header says {}",
+            length + 2
+        )
+    );
+}
+
 /// Every LAS point format, 0 to 10 (the waveform formats 4, 5, 9 and 10
 /// included), plain and LAZ: the points written by the `las` crate come back
 /// at their quantized positions, with their colours mapped to 8 bits by

@@ -10,6 +10,7 @@
 
 use dagfmt::builder::DagBuilder;
 use dagfmt::layout::{self, SectionKind};
+use dagfmt::packed_colors::BlockLayout;
 use dagfmt::{AttributeKind, ErrorCode, morton};
 
 use crate::model::{
@@ -128,11 +129,45 @@ fn with_packed_section(bytes: &[u8], item_count: u64, section: Vec<u8>) -> Vec<u
     model.encode()
 }
 
-/// A packed section of the base file's colours, lossless, edited by `f`.
+/// The base file's colours packed losslessly in format 1.1's layout (64
+/// colours a block, no split sub-blocks), as a 1.1 writer wrote them.
+fn packed_v1_1(colors: &[[u8; 4]]) -> Vec<u8> {
+    dagfmt::packed_colors::encode_with_layout(colors, 0, BlockLayout::V1_1)
+        .expect("bound 0")
+        .0
+}
+
+/// A packed section of the base file's colours, lossless, in format 1.1's
+/// layout, edited by `f`.
 fn packed_edit(bytes: &[u8], f: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
     let count = DagModel::decode(bytes).expect("base decodes").voxel_count;
+    let mut section = packed_v1_1(&packable_colors(count));
+    f(&mut section);
+    with_packed_section(bytes, count, section)
+}
+
+/// Colours for a format 1.2 section of the base file: runs of 5 that make
+/// the sub-blocks of 8 split (two indices and a position) or uniform.
+fn split_colors(count: u64) -> Vec<[u8; 4]> {
+    (0..count)
+        .map(|i| {
+            let c = (i / 5 % 3) as u8;
+            [40 * c, 200 - 30 * c, 90, 255]
+        })
+        .collect()
+}
+
+/// A lossless format 1.2 section of the base file's colours (blocks of 128
+/// colours with split sub-blocks), edited by `f`.
+fn split_edit(bytes: &[u8], f: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
+    let count = DagModel::decode(bytes).expect("base decodes").voxel_count;
+    let layout = BlockLayout {
+        shift: 7,
+        split: true,
+    };
     let (mut section, _) =
-        dagfmt::packed_colors::encode(&packable_colors(count), 0).expect("bound 0");
+        dagfmt::packed_colors::encode_with_layout(&split_colors(count), 0, layout)
+            .expect("bound 0");
     f(&mut section);
     with_packed_section(bytes, count, section)
 }
@@ -688,31 +723,31 @@ pub fn validate_cases() -> Vec<ValidateCase> {
         ErrorCode::BadPackedColorSection,
         "twice",
         "a VOXEL_COLORS and a PACKED_COLORS section",
-        {
-            let (section, _) =
-                dagfmt::packed_colors::encode(&packable_colors(packed_count), 0).expect("E 0");
-            with_packed_section(&colored, packed_count, section)
-        },
+        with_packed_section(
+            &colored,
+            packed_count,
+            packed_v1_1(&packable_colors(packed_count)),
+        ),
     );
     bad(
         ErrorCode::BadPackedColorSection,
         "count",
         "the packed colour section's item count is one less than the voxels",
-        {
-            let (section, _) =
-                dagfmt::packed_colors::encode(&packable_colors(packed_count - 1), 0).expect("E 0");
-            with_packed_section(&base, packed_count - 1, section)
-        },
+        with_packed_section(
+            &base,
+            packed_count - 1,
+            packed_v1_1(&packable_colors(packed_count - 1)),
+        ),
     );
     bad(
         ErrorCode::BadPackedColorSection,
         "kind0",
         "a packed colour section in a file with attribute kind 0",
-        {
-            let (section, _) =
-                dagfmt::packed_colors::encode(&packable_colors(packed_count), 0).expect("E 0");
-            with_packed_section(&base0, packed_count, section)
-        },
+        with_packed_section(
+            &base0,
+            packed_count,
+            packed_v1_1(&packable_colors(packed_count)),
+        ),
     );
     bad(
         ErrorCode::BadPackedColorSection,
@@ -727,7 +762,7 @@ pub fn validate_cases() -> Vec<ValidateCase> {
     bad(
         ErrorCode::BadColorTrailer,
         "shift",
-        "the trailer's block shift is 5",
+        "the trailer's block shift is 5 (6, 7 or 8 are allowed)",
         packed_edit(&base, |s| {
             let at = s.len() - 15;
             s[at] = 5;
@@ -754,10 +789,19 @@ pub fn validate_cases() -> Vec<ValidateCase> {
     bad(
         ErrorCode::BadColorTrailer,
         "reserved",
-        "a reserved trailer byte is 1",
+        "a reserved trailer byte (offset 4) is 1",
+        packed_edit(&base, |s| {
+            let at = s.len() - 12;
+            s[at] = 1;
+        }),
+    );
+    bad(
+        ErrorCode::BadColorTrailer,
+        "flags",
+        "the trailer's flags have bit 1 set, which no version defines",
         packed_edit(&base, |s| {
             let at = s.len() - 13;
-            s[at] = 1;
+            s[at] = 2;
         }),
     );
     bad(
@@ -829,6 +873,23 @@ pub fn validate_cases() -> Vec<ValidateCase> {
         "block 0's red base is 250, so its third entry (20 steps up) starts past 255",
         packed_edit(&base, |s| s[3] = 250),
     );
+    // ---- Format 1.2: the base file's colours in one block of 128 with
+    // split sub-blocks (header 0x02, widths 0x67 0x00, base 0 140 90, the
+    // uniform mask 0x0000, then the stream from byte 8: ten split flags, the
+    // palette's three 13-bit entries, and sub-block 0, which is split: index
+    // a, index b (2 bits each) and its 3-bit position, 5).
+    bad(
+        ErrorCode::BadSplitSubBlock,
+        "position",
+        "sub-block 0 of block 0 is split at position 0, not inside its colours",
+        split_edit(&base, |s| {
+            let stream = 1 + 2 + 3 + 2;
+            let at = 10 + 3 * 13 + 2 * 2;
+            for bit in at..at + 3 {
+                s[stream + bit / 8] &= !(1 << (bit % 8));
+            }
+        }),
+    );
 
     // ---- Valid files that exercise the lenient parts of the format.
     let mut good = vec![
@@ -858,13 +919,21 @@ pub fn validate_cases() -> Vec<ValidateCase> {
         None,
     ));
     good.push(case(
+        "valid-packed-colors-split",
+        "the base file with a lossless format 1.2 PACKED_COLORS section: one block of 128 colours with split sub-blocks",
+        split_edit(&base, |_| {}),
+        None,
+    ));
+    good.push(case(
         "valid-packed-colors-lossy",
         "the base file with a PACKED_COLORS section within 3 per channel, with alpha",
         {
             let colors: Vec<[u8; 4]> = (0..model.voxel_count)
                 .map(|i| [(i * 37) as u8, (i * 3) as u8, 7, 200 + (i % 5) as u8])
                 .collect();
-            let (section, _) = dagfmt::packed_colors::encode(&colors, 3).expect("E 3");
+            let (section, _) =
+                dagfmt::packed_colors::encode_with_layout(&colors, 3, BlockLayout::V1_1)
+                    .expect("E 3");
             with_packed_section(&base, model.voxel_count, section)
         },
         None,

@@ -2,9 +2,12 @@
 //! measured error and PSNR, encode and decode speed, for several error bounds.
 //!
 //! `cargo run --release -p dagfmt --example color_bench -- FILE.vdag [E ...]`
-//! (the file's colours, raw or packed; default bounds 0 and 8).
+//! (the file's colours, raw or packed; default bounds 0 and 8). With
+//! `COLOR_BENCH_LAYOUTS=1` each bound is also encoded in every fixed layout
+//! (format 1.1's 64-colour blocks, and 64, 128, 256 with split sub-blocks)
+//! beside the encoder's own choice.
 use dagfmt::Dag;
-use dagfmt::packed_colors::{PackedColors, check_section, encode};
+use dagfmt::packed_colors::{BlockLayout, PackedColors, check_section, encode, encode_with_layout};
 use std::time::Instant;
 
 fn main() {
@@ -28,12 +31,24 @@ fn main() {
     let n = colors.len() as u64;
     println!("{path}: {n} colours");
     println!(
-        "| E | bytes | bits/voxel | % of raw RGB | max error | PSNR dB | encode MB/s | random Mcol/s | sequential Mcol/s |"
+        "| E | layout | bytes | bits/voxel | % of raw RGB | max error | PSNR dB | encode MB/s | random Mcol/s | sequential Mcol/s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
-    for e in bounds {
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let mut layouts = vec![None];
+    if std::env::var_os("COLOR_BENCH_LAYOUTS").is_some() {
+        layouts.push(Some(BlockLayout::V1_1));
+        layouts.extend(BlockLayout::CHOICES.map(Some));
+    }
+    for (e, layout) in bounds
+        .iter()
+        .flat_map(|&e| layouts.iter().map(move |&l| (e, l)))
+    {
         let t = Instant::now();
-        let (bytes, summary) = encode(&colors, e).expect("bound ≤ 127");
+        let (bytes, summary) = match layout {
+            None => encode(&colors, e),
+            Some(l) => encode_with_layout(&colors, e, l),
+        }
+        .expect("bound ≤ 127");
         let enc = t.elapsed().as_secs_f64();
         assert!(
             check_section(&bytes, n).is_empty(),
@@ -64,8 +79,16 @@ fn main() {
         let rnd = t.elapsed().as_secs_f64();
         std::hint::black_box(sum);
         let bpv = bytes.len() as f64 * 8.0 / n as f64;
+        let l = summary.trailer.layout;
+        let name = format!(
+            "{}{} {}{}",
+            if layout.is_none() { "auto: " } else { "" },
+            1 << l.shift,
+            if l.split { "split" } else { "plain" },
+            if l.is_v1_1() { " (1.1)" } else { "" }
+        );
         println!(
-            "| {e} | {} | {bpv:.3} | {:.2} % | {max} | {:.2} | {:.0} | {:.1} | {:.1} |",
+            "| {e} | {name} | {} | {bpv:.3} | {:.2} % | {max} | {:.2} | {:.0} | {:.1} | {:.1} |",
             bytes.len(),
             bpv / 24.0 * 100.0,
             summary.trailer.psnr(n),

@@ -25,6 +25,7 @@ use crate::layout::{
     MAX_NODE_LEVEL_BYTES, MAX_SECTIONS, MIN_DEPTH, RawHeader, RawSectionEntry, SECTION_ENTRY_SIZE,
     SECTION_KIND_OPTIONAL_BIT, SectionKind,
 };
+use crate::packed_colors::BlockLayout;
 
 /// One section of a file: its table entry without the offset.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -41,6 +42,9 @@ pub struct SectionInfo {
     pub item_count: u64,
     /// CRC-32C of the section's bytes.
     pub crc: u32,
+    /// The lowest minor version of format 1 that defines the section's
+    /// contents (§22.1): 0 for the sections of 1.0, 1 or 2 for packed colours.
+    pub version_minor: u16,
 }
 
 impl SectionInfo {
@@ -60,6 +64,7 @@ impl SectionInfo {
             length,
             item_count,
             crc,
+            version_minor: 0,
         }
     }
 
@@ -72,6 +77,7 @@ impl SectionInfo {
             length: leaves.saturating_mul(8),
             item_count: leaves,
             crc,
+            version_minor: 0,
         }
     }
 
@@ -84,11 +90,14 @@ impl SectionInfo {
             length: colors.saturating_mul(4),
             item_count: colors,
             crc,
+            version_minor: 0,
         }
     }
 
-    /// A packed colour section (kind 4) of `colors` colours in `length` bytes.
-    pub fn packed_colors(colors: u64, length: u64, crc: u32) -> Self {
+    /// A packed colour section (kind 4) of `colors` colours in `length` bytes,
+    /// its blocks laid out as `layout` says (format 1.1's layout, or one that
+    /// needs format 1.2).
+    pub fn packed_colors(colors: u64, length: u64, crc: u32, layout: BlockLayout) -> Self {
         SectionInfo {
             kind: SectionKind::PackedColors,
             level: 0,
@@ -96,6 +105,11 @@ impl SectionInfo {
             length,
             item_count: colors,
             crc,
+            version_minor: if layout.is_v1_1() {
+                layout::VERSION_MINOR_PACKED_COLORS
+            } else {
+                layout::VERSION_MINOR_SPLIT_COLORS
+            },
         }
     }
 
@@ -215,16 +229,12 @@ impl FileLayout {
             magic: MAGIC,
             version_major: layout::VERSION_MAJOR.to_le(),
             // The lowest version that has everything the file uses (§22.1).
-            version_minor: if self
+            version_minor: self
                 .sections
                 .iter()
-                .any(|s| s.kind == SectionKind::PackedColors)
-            {
-                layout::VERSION_MINOR_PACKED_COLORS
-            } else {
-                layout::VERSION_MINOR
-            }
-            .to_le(),
+                .map(|s| s.version_minor)
+                .fold(layout::VERSION_MINOR, u16::max)
+                .to_le(),
             header_size: (HEADER_SIZE as u32).to_le(),
             required_features: 0,
             optional_features: 0,

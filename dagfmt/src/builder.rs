@@ -620,6 +620,7 @@ impl DagBuilder {
             colors: None,
             colors_crc: 0,
             packed: None,
+            packed_layout: crate::packed_colors::BlockLayout::V1_1,
             file: None,
         };
         built.lay_out()?;
@@ -798,6 +799,8 @@ pub struct BuiltDag {
     colors_crc: u32,
     /// A packed colour section's bytes, instead of `colors`.
     packed: Option<Vec<u8>>,
+    /// The packed section's block layout.
+    packed_layout: crate::packed_colors::BlockLayout,
     /// The file as it will be written (placed by [`FileLayout`]).
     file: Option<FileLayout>,
 }
@@ -875,6 +878,7 @@ impl BuiltDag {
         self.colors_crc = crc32c::crc32c(&bytes);
         self.colors = None;
         self.packed = Some(bytes);
+        self.packed_layout = summary.trailer.layout;
         if let Err(e) = self.place() {
             self.packed = None;
             self.colors_crc = 0;
@@ -1006,6 +1010,7 @@ impl BuiltDag {
                 self.voxel_count,
                 packed.len() as u64,
                 self.colors_crc,
+                self.packed_layout,
             ));
         }
         let header = FileHeader {

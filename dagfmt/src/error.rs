@@ -114,7 +114,7 @@ error_codes! {
     BadColorSection = "E063", "bad-color-section";
     /// A packed colour section is present without attribute kind 1, beside another colour section, with a wrong count, or shorter than its directory and trailer.
     BadPackedColorSection = "E080", "bad-packed-color-section";
-    /// A packed colour section's trailer has a wrong block shift, an error bound over 127, a measured error over the bound, a non-zero reserved byte or an impossible squared error.
+    /// A packed colour section's trailer has a block shift other than 6, 7 or 8, unknown flags, an error bound over 127, a measured error over the bound, a non-zero reserved byte or an impossible squared error.
     BadColorTrailer = "E081", "bad-color-trailer";
     /// A packed colour directory entry places a block outside the blocks, out of order, or not right after the block before; or its unused bits are not zero.
     BadColorDirectory = "E082", "bad-color-directory";
@@ -128,6 +128,8 @@ error_codes! {
     ColorIndexOutOfRange = "E086", "color-index-out-of-range";
     /// A packed colour entry starts its interval past 255.
     ColorValueOutOfRange = "E087", "color-value-out-of-range";
+    /// A packed colour block's split mask names sub-blocks past the block or ones that are uniform too, or a split sub-block's position is not inside it (format 1.2).
+    BadSplitSubBlock = "E088", "bad-split-sub-block";
 }
 
 impl fmt::Display for ErrorCode {

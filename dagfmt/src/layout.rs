@@ -27,6 +27,9 @@ pub const VERSION_MINOR: u16 = 0;
 /// The minor version of a file holding a PACKED_COLORS section (kind 4, added
 /// in format 1.1); files without one stay [`VERSION_MINOR`].
 pub const VERSION_MINOR_PACKED_COLORS: u16 = 1;
+/// The minor version of a file whose PACKED_COLORS section uses blocks of 128
+/// or 256 colours or split sub-blocks (format 1.2).
+pub const VERSION_MINOR_SPLIT_COLORS: u16 = 2;
 
 /// Size in bytes of the fixed file header.
 pub const HEADER_SIZE: usize = 128;

@@ -43,4 +43,4 @@ pub mod validate;
 pub use builder::DagBuilder;
 pub use error::{ErrorCode, FormatError};
 pub use layout::{AttributeKind, SectionKind};
-pub use reader::{ColorTable, Dag, Header, LeafMask, LevelSection, Node, NodeRef};
+pub use reader::{ColorCursor, ColorTable, Dag, Header, LeafMask, LevelSection, Node, NodeRef};

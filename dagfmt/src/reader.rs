@@ -244,11 +244,41 @@ impl<'a> ColorTable<'a> {
         }
     }
 
+    /// Random access for lookups that come in runs of neighbours (a render's
+    /// pixels): a packed section keeps the last block's header.
+    pub fn cursor(&self) -> ColorCursor<'a> {
+        match *self {
+            ColorTable::Raw(b) => ColorCursor::Raw(b),
+            ColorTable::Packed(p) => ColorCursor::Packed(p.cursor()),
+        }
+    }
+
     /// Every colour in order.
     pub fn iter(&self) -> Box<dyn Iterator<Item = [u8; 4]> + 'a> {
         match *self {
             ColorTable::Raw(b) => Box::new(b.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]])),
             ColorTable::Packed(p) => Box::new(p.iter()),
+        }
+    }
+}
+
+/// Random access to a [`ColorTable`] that remembers the last packed block;
+/// see [`ColorTable::cursor`].
+#[derive(Clone, Debug)]
+pub enum ColorCursor<'a> {
+    /// A VOXEL_COLORS section.
+    Raw(&'a [u8]),
+    /// A PACKED_COLORS section.
+    Packed(crate::packed_colors::PackedColorsCursor<'a>),
+}
+
+impl ColorCursor<'_> {
+    /// The colour of the voxel with dense index `index`, `None` past the end;
+    /// the same as [`ColorTable::get`].
+    pub fn get(&mut self, index: u64) -> Option<[u8; 4]> {
+        match self {
+            ColorCursor::Raw(b) => ColorTable::Raw(b).get(index),
+            ColorCursor::Packed(p) => p.get(index),
         }
     }
 }

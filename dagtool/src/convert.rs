@@ -123,13 +123,29 @@ pub fn packed_line(p: &dagfmt::packed_colors::PackedSummary) -> String {
         p.length as f64 * 8.0 / p.count as f64
     };
     format!(
-        "packed, {} bytes for {} colours: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, max error {}, PSNR {}",
+        "packed, {} bytes for {} colours: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, max error {}, PSNR {}; {}",
         p.length,
         p.count,
         bits / 24.0 * 100.0,
         p.trailer.error_bound,
         p.trailer.max_error,
-        psnr_text(p.trailer.psnr(p.count))
+        psnr_text(p.trailer.psnr(p.count)),
+        layout_text(p.trailer.layout)
+    )
+}
+
+/// A packed colour section's block layout in words.
+pub fn layout_text(layout: dagfmt::packed_colors::BlockLayout) -> String {
+    format!(
+        "blocks of {}{}",
+        layout.block_colors(),
+        if layout.split {
+            ", split sub-blocks (format 1.2)"
+        } else if layout.shift == 6 {
+            " (format 1.1)"
+        } else {
+            " (format 1.2)"
+        }
     )
 }
 

@@ -709,7 +709,9 @@ impl Colours {
     pub fn section(&self) -> SectionInfo {
         match self.packed {
             None => SectionInfo::voxel_colors(self.count, self.crc),
-            Some(_) => SectionInfo::packed_colors(self.count, self.length, self.crc),
+            Some(p) => {
+                SectionInfo::packed_colors(self.count, self.length, self.crc, p.trailer.layout)
+            }
         }
     }
 

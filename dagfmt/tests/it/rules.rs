@@ -918,7 +918,8 @@ rule_cases! {
     };
     e081_bad_color_trailer: BadColorTrailer => || {
         vec![
-            crafted(packed_sample(|d| { let n = d.len(); d[n - 15] = 7 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 15] = 9 })),
+            crafted(packed_sample(|d| { let n = d.len(); d[n - 13] = 2 })),
             crafted(packed_sample(|d| { let n = d.len(); d[n - 16] = 128 })),
             crafted(packed_sample(|d| { let n = d.len(); d[n - 14] = 1 })),
             crafted(packed_sample(|d| { let n = d.len(); d[n - 9] = 1 })),
@@ -931,6 +932,31 @@ rule_cases! {
     e085_color_block_padding: ColorBlockPadding => || packed_breaking(ErrorCode::ColorBlockPadding);
     e086_color_index_out_of_range: ColorIndexOutOfRange => || packed_breaking(ErrorCode::ColorIndexOutOfRange);
     e087_color_value_out_of_range: ColorValueOutOfRange => || packed_breaking(ErrorCode::ColorValueOutOfRange);
+    e088_bad_split_sub_block: BadSplitSubBlock => || breaking(ErrorCode::BadSplitSubBlock, split_sample);
+}
+
+/// The sample with a lossless format 1.2 PACKED_COLORS section (blocks of
+/// 128, split sub-blocks: runs of 5 colours change once in most sub-blocks of
+/// 8), whose bytes `edit` changes.
+fn split_sample(edit: &mut dyn FnMut(&mut Vec<u8>)) -> Vec<u8> {
+    let mut spec = sample_spec(AttributeKind::VoxelCount);
+    let colors: Vec<[u8; 4]> = (0..spec.voxel_count)
+        .map(|i| [30 * (i / 5 % 4) as u8, 100, 7, 255])
+        .collect();
+    let layout = dagfmt::packed_colors::BlockLayout {
+        shift: 7,
+        split: true,
+    };
+    let (mut data, _) = dagfmt::packed_colors::encode_with_layout(&colors, 0, layout).unwrap();
+    edit(&mut data);
+    spec.sections.push(Sec::new(
+        SectionKind::PACKED_COLORS,
+        0,
+        0,
+        spec.voxel_count,
+        data,
+    ));
+    assemble(&spec)
 }
 
 /// The sample (attribute kind 1) with a lossless PACKED_COLORS section as
@@ -956,11 +982,21 @@ fn packed_sample(edit: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
 /// then the byte set to 0xff) after which the validator reports `code` and
 /// nothing else: a file breaking that rule alone.
 fn packed_breaking(code: ErrorCode) -> Vec<Crafted> {
-    let len = packed_sample(|_| {}).len();
+    breaking(code, |edit| packed_sample(edit))
+}
+
+/// The first one-byte edit of a sample's section (each bit flipped, then the
+/// byte set to 0xff) after which the validator reports `code` and nothing
+/// else.
+fn breaking(
+    code: ErrorCode,
+    sample: impl Fn(&mut dyn FnMut(&mut Vec<u8>)) -> Vec<u8>,
+) -> Vec<Crafted> {
+    let len = sample(&mut |_| {}).len();
     for at in 0..len {
         for edit in (0..8).map(|b| 1u8 << b).chain([0xff]) {
             let mut hit = false;
-            let bytes = packed_sample(|d| {
+            let bytes = sample(&mut |d| {
                 if let Some(x) = d.get_mut(at) {
                     *x = if edit == 0xff { 0xff } else { *x ^ edit };
                     hit = true;
@@ -1371,5 +1407,37 @@ fn checksums_on_a_second_thread_agree() {
             found,
             vec![(ErrorCode::SectionChecksum, (entry(3) + 32) as u64)]
         );
+    }
+}
+
+/// A file written by the format 1.1 writer (the conformance suite's lossy
+/// packed colour case of revision 1.2, kept byte for byte) still opens,
+/// validates and decodes within its bound: 1.2 readers read 1.1 sections.
+#[test]
+fn format_1_1_packed_colours_still_read() {
+    let bytes = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/data/packed-colors-1.1-lossy.vdag"
+    ))
+    .unwrap();
+    assert_eq!(validate(&bytes), vec![]);
+    let dag = Dag::open(&bytes).unwrap();
+    let packed = dag.packed_colors().unwrap();
+    assert_eq!(
+        packed.trailer().layout,
+        dagfmt::packed_colors::BlockLayout::V1_1
+    );
+    assert_eq!(packed.trailer().error_bound, 3);
+    assert_eq!(packed.len(), 77);
+    for (i, c) in packed.iter().enumerate() {
+        let i = i as u64;
+        let source = [(i * 37) as u8, (i * 3) as u8, 7, 200 + (i % 5) as u8];
+        for ch in 0..4 {
+            assert!(
+                source[ch].abs_diff(c[ch]) <= 3,
+                "colour {i}: {c:?} from {source:?}"
+            );
+        }
+        assert_eq!(packed.get(i), Some(c));
     }
 }

@@ -236,12 +236,13 @@ fn colors_line(dag: &Dag<'_>) -> Option<String> {
     let (bits, ratio) = color_bits(dag, p.bytes().len());
     let t = p.trailer();
     Some(format!(
-        "packed, {} bytes: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, measured max error {}, PSNR {}",
+        "packed, {} bytes: {bits:.3} bits per voxel, {:.2} % of raw 24-bit RGB; error bound {}, measured max error {}, PSNR {}; {}",
         p.bytes().len(),
         ratio * 100.0,
         t.error_bound,
         t.max_error,
-        crate::convert::psnr_text(t.psnr(p.len()))
+        crate::convert::psnr_text(t.psnr(p.len())),
+        crate::convert::layout_text(t.layout)
     ))
 }
 
@@ -272,5 +273,7 @@ fn colors_json(dag: &Dag<'_>) -> serde_json::Value {
         "error_bound": t.error_bound,
         "max_error": t.max_error,
         "psnr_db": psnr.is_finite().then_some(psnr),
+        "block_colors": t.layout.block_colors(),
+        "split_sub_blocks": t.layout.split,
     })
 }

@@ -89,6 +89,7 @@ pub fn recompress(
                     packed.count,
                     section.len() as u64,
                     crc32c::crc32c(&section),
+                    packed.trailer.layout,
                 ));
                 sources.push(&section);
             }
@@ -100,6 +101,7 @@ pub fn recompress(
                     length: entry.length,
                     item_count: entry.item_count,
                     crc: entry.crc,
+                    version_minor: 0,
                 });
                 sources.push(data);
             }

@@ -407,6 +407,17 @@ fn read_bits(bytes: &[u8], start: usize, pos: u64, n: u32) -> u32 {
     ((word >> shift) & ((1u64 << n) - 1)) as u32
 }
 
+/// Reads `n` ≤ 56 bits LSB first from bit `pos` of `bytes[start..]`; missing
+/// bytes read as zero.
+fn read_bits64(bytes: &[u8], start: usize, pos: u64, n: u32) -> u64 {
+    debug_assert!(n <= 56);
+    if n <= 32 {
+        return u64::from(read_bits(bytes, start, pos, n));
+    }
+    u64::from(read_bits(bytes, start, pos, 32))
+        | u64::from(read_bits(bytes, start, pos + 32, n - 32)) << 32
+}
+
 fn byte(bytes: &[u8], at: usize) -> u32 {
     bytes.get(at).copied().map_or(0, u32::from)
 }
@@ -934,32 +945,51 @@ fn check_block(
         }
     }
     if palette_masks {
+        // Sub-blocks in order, their codes' position kept as we go. With a
+        // palette of a power of two every index of w bits is < k.
+        let check_indices = !k.is_power_of_two();
+        let mut pos = h.entries_at() + u64::from(k) * eb;
+        let mut rank = 0;
         for t in 0..subs {
-            let (pos, kind) = h.sub_block(t);
             let len = (n - t * SUB_BLOCK).min(SUB_BLOCK);
-            let indices = match kind {
-                SubBlock::Uniform => 1,
-                SubBlock::Split => {
-                    let p_at = pos + 2 * w;
-                    let p = read_bits(s, h.bits, p_at, SPLIT_POSITION_BITS);
-                    if p == 0 || p >= len {
-                        errors.push(err(
-                            ErrorCode::BadSplitSubBlock,
-                            (h.bits as u64) + p_at / 8,
-                            format!(
-                                "block {b}, sub-block {t}: split at {p}, not inside its {len} colours"
-                            ),
-                        ));
-                        return;
-                    }
-                    2
+            let kind = if h.uniform >> t & 1 == 1 {
+                SubBlock::Uniform
+            } else {
+                rank += 1;
+                if h.split_flags >> (rank - 1) & 1 == 1 {
+                    SubBlock::Split
+                } else {
+                    SubBlock::Full
                 }
-                SubBlock::Full => len,
             };
-            for slot in 0..u64::from(indices) {
-                let i_at = pos + slot * w;
-                let i = read_bits(s, h.bits, i_at, w as u32);
-                if i >= k {
+            let (indices, size) = match kind {
+                SubBlock::Uniform => (1, w),
+                SubBlock::Split => (2, 2 * w + u64::from(SPLIT_POSITION_BITS)),
+                SubBlock::Full => (len, u64::from(len) * w),
+            };
+            if kind == SubBlock::Split {
+                let p_at = pos + 2 * w;
+                let p = read_bits(s, h.bits, p_at, SPLIT_POSITION_BITS);
+                if p == 0 || p >= len {
+                    errors.push(err(
+                        ErrorCode::BadSplitSubBlock,
+                        (h.bits as u64) + p_at / 8,
+                        format!(
+                            "block {b}, sub-block {t}: split at {p}, not inside its {len} colours"
+                        ),
+                    ));
+                    return;
+                }
+            }
+            if check_indices {
+                // The sub-block's indices (at most 8 of 6 bits) in one read.
+                let word = read_bits64(s, h.bits, pos, (u64::from(indices) * w) as u32);
+                let mask = (1u64 << w) - 1;
+                if let Some(slot) =
+                    (0..u64::from(indices)).find(|j| word >> (j * w) & mask >= u64::from(k))
+                {
+                    let i_at = pos + slot * w;
+                    let i = read_bits(s, h.bits, i_at, w as u32);
                     errors.push(err(
                         ErrorCode::ColorIndexOutOfRange,
                         (h.bits as u64) + i_at / 8,
@@ -968,6 +998,7 @@ fn check_block(
                     return;
                 }
             }
+            pos += size;
         }
     }
 }

@@ -164,6 +164,13 @@ impl Findings {
         self.errors.push(e);
         Ok(())
     }
+
+    /// Stops as [`Findings::report`] does at the limit: findings were left
+    /// out elsewhere.
+    fn report_overflow(&mut self) -> Result<(), Stop> {
+        self.truncated = true;
+        Err(Stop)
+    }
 }
 
 /// A subtree voxel count that cannot be known (a pointer of the subtree is
@@ -226,7 +233,45 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
                     .ok()
             })
             .flatten();
+        // A large packed colour section's blocks are checked on a thread of
+        // their own while the levels are walked; a small one after the walk.
+        let colors = (options.threads && packed_colors_count(&layout) >= PARALLEL_COLORS)
+            .then(|| {
+                let max = f.max;
+                let layout = &layout;
+                std::thread::Builder::new()
+                    .name("vdag-colors".into())
+                    .spawn_scoped(scope, move || {
+                        let mut own = Findings {
+                            errors: Vec::new(),
+                            max,
+                            truncated: false,
+                        };
+                        let _ = check_packed_colors(layout, bytes, &mut own);
+                        own
+                    })
+                    .ok()
+            })
+            .flatten();
         let walked = check_levels(&layout, bytes, f);
+        let walked = match colors {
+            Some(colors) => {
+                let own = colors
+                    .join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                walked.and_then(|()| {
+                    for e in own.errors {
+                        f.report(e)?;
+                    }
+                    if own.truncated {
+                        f.report_overflow()
+                    } else {
+                        Ok(())
+                    }
+                })
+            }
+            None => walked.and_then(|()| check_packed_colors(&layout, bytes, f)),
+        };
         let computed = match worker {
             Some(worker) => worker
                 .join()
@@ -234,7 +279,6 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
             None => compute(),
         };
         walked?;
-        check_packed_colors(&layout, bytes, f)?;
         for ((entry, _), computed) in checksummed.iter().zip(computed) {
             if computed != entry.crc {
                 f.report(FormatError::new(
@@ -282,6 +326,21 @@ fn check_packed_colors(
 /// Sections totalling at least this many bytes are checksummed on a second
 /// thread (below it, starting the thread costs more than it saves).
 const PARALLEL_CHECKSUM_BYTES: usize = 32 << 20;
+
+/// Packed colours from which their blocks are checked on a thread of their own.
+const PARALLEL_COLORS: u64 = 1 << 22;
+
+/// Colours in the packed colour sections [`check_packed_colors`] checks.
+fn packed_colors_count(layout: &reader::Layout) -> u64 {
+    layout
+        .sections
+        .iter()
+        .filter(|e| {
+            e.kind == SectionKind::PackedColors && e.item_count == layout.header.voxel_count
+        })
+        .map(|e| e.item_count)
+        .sum()
+}
 
 /// Everything after the section table except the checksums: pointer widths,
 /// the root level, the walk of the levels and the header's voxel count.

@@ -18,7 +18,7 @@ use dagfmt::output::OutputError;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
 use dagtrace::lit::{LitOptions, render_lit};
-use dagtrace::render::{Shade, color_lookup, render, shade_hits};
+use dagtrace::render::{Shade, render, shade_hits};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -394,7 +394,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
                     // render the same image (up to the spec's tolerance).
                     let rays = frame.rays(args.width, args.height, args.level);
                     let hits = gpu.trace(&rays)?;
-                    shade_hits(&hits, shade, color_lookup(&tracer))
+                    shade_hits(&hits, shade, tracer.colors())
                 }
             }
         }

@@ -1,8 +1,11 @@
 //! Shading traced primary rays into an RGB image.
 
+use rayon::prelude::*;
+
 use crate::camera::CameraFrame;
 use crate::walk::{TraceError, Tracer};
 use dagfmt::batch::Hit;
+use dagfmt::{ColorCursor, ColorTable};
 
 /// How hit pixels are coloured.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -52,61 +55,69 @@ pub fn render(
     for (hit, &pixel) in tiled.into_iter().zip(&pixels) {
         hits[pixel as usize] = hit;
     }
-    Ok(shade_hits(&hits, shade, color_lookup(&tracer)))
+    Ok(shade_hits(&hits, shade, tracer.colors()))
 }
 
-/// The colour lookup of [`shade_hits`] for `tracer`'s file: a cursor that
-/// keeps the last packed block's header, since neighbouring pixels mostly
-/// fall in one block (spec §12.6).
-pub fn color_lookup<'t>(tracer: &Tracer<'t>) -> impl FnMut(u64) -> Option<[u8; 4]> + 't {
-    let mut cursor = tracer.colors().map(|table| table.cursor());
-    move |index| cursor.as_mut().and_then(|c| c.get(index))
-}
+/// Pixels shaded by one rayon task: a few rows, whose colour lookups share a
+/// cursor.
+const SHADE_CHUNK: usize = 4096;
 
 /// Colours traced primary-ray hits (one per pixel, rows from the top) into
-/// RGB8 pixels. `color` looks up a voxel's stored colour by attribute index
-/// (used by [`Shade::Color`]); hits without an index get a neutral grey.
+/// RGB8 pixels, on all cores. [`Shade::Color`] looks a voxel's stored colour
+/// up by attribute index in `colors`, through a cursor per task that keeps
+/// the last packed block's header (neighbouring pixels mostly fall in one
+/// block, spec §12.6); hits without an index or colours get a neutral grey.
 /// Shared by the CPU and GPU back ends so both produce the same image.
-pub fn shade_hits(
-    hits: &[Hit],
-    shade: Shade,
-    mut color: impl FnMut(u64) -> Option<[u8; 4]>,
-) -> Vec<u8> {
+pub fn shade_hits(hits: &[Hit], shade: Shade, colors: Option<ColorTable<'_>>) -> Vec<u8> {
     let (near, far) = hits
         .iter()
         .filter(|h| h.hit && h.t.is_finite())
         .fold((f32::INFINITY, f32::NEG_INFINITY), |(n, f), h| {
             (n.min(h.t), f.max(h.t))
         });
-    let mut pixels = Vec::with_capacity(hits.len() * 3);
-    for hit in hits {
-        let rgb = if !hit.hit {
-            BACKGROUND
-        } else {
-            match shade {
-                Shade::Depth => {
-                    let span = (far - near).max(f32::MIN_POSITIVE);
-                    let g = if hit.t.is_finite() {
-                        1.0 - 0.85 * (hit.t - near) / span
-                    } else {
-                        0.15
-                    };
-                    [to_u8(g); 3]
-                }
-                Shade::Normal => lit(normal_color(hit), hit),
-                Shade::Color => {
-                    let base = hit
-                        .index
-                        .and_then(&mut color)
-                        .map(|c| [c[0], c[1], c[2]].map(|v| f32::from(v) / 255.0))
-                        .unwrap_or([0.75, 0.75, 0.72]);
-                    lit(base, hit)
-                }
-            }
-        };
-        pixels.extend_from_slice(&rgb);
-    }
+    let mut pixels = vec![0u8; hits.len() * 3];
     pixels
+        .par_chunks_mut(SHADE_CHUNK * 3)
+        .zip(hits.par_chunks(SHADE_CHUNK))
+        .for_each(|(out, hits)| {
+            let mut cursor = colors.map(|table| table.cursor());
+            for (px, hit) in out.chunks_exact_mut(3).zip(hits) {
+                px.copy_from_slice(&shade_hit(hit, shade, (near, far), &mut cursor));
+            }
+        });
+    pixels
+}
+
+/// One pixel of [`shade_hits`]; `span` is the nearest and farthest finite hit.
+fn shade_hit(
+    hit: &Hit,
+    shade: Shade,
+    (near, far): (f32, f32),
+    colors: &mut Option<ColorCursor<'_>>,
+) -> [u8; 3] {
+    if !hit.hit {
+        return BACKGROUND;
+    }
+    match shade {
+        Shade::Depth => {
+            let span = (far - near).max(f32::MIN_POSITIVE);
+            let g = if hit.t.is_finite() {
+                1.0 - 0.85 * (hit.t - near) / span
+            } else {
+                0.15
+            };
+            [to_u8(g); 3]
+        }
+        Shade::Normal => lit(normal_color(hit), hit),
+        Shade::Color => {
+            let base = hit
+                .index
+                .and_then(|i| colors.as_mut()?.get(i))
+                .map(|c| [c[0], c[1], c[2]].map(|v| f32::from(v) / 255.0))
+                .unwrap_or([0.75, 0.75, 0.72]);
+            lit(base, hit)
+        }
+    }
 }
 
 /// Base colour from the face normal: each axis its own hue.

@@ -1441,3 +1441,41 @@ fn format_1_1_packed_colours_still_read() {
         assert_eq!(packed.get(i), Some(c));
     }
 }
+
+/// A packed colour section of 2^22 colours or more is checked on a thread of
+/// its own while the levels are walked: the findings are those of the
+/// single-threaded validation, on a valid file and on one with a broken block.
+#[test]
+fn large_packed_sections_are_checked_alike_on_their_own_thread() {
+    let mut dag =
+        dagfmt::builder::DagBuilder::from_fn(8, AttributeKind::VoxelCount, |_, _, z| z < 65)
+            .unwrap();
+    let n = dag.voxel_count();
+    assert!(n >= 1 << 22, "{n} colours");
+    let colors: Vec<[u8; 4]> = (0..n)
+        .map(|i| [(i / 9 % 7 * 30) as u8, (i >> 12) as u8, 3, 255])
+        .collect();
+    dag.set_packed_colors(&colors, 0).unwrap();
+    let mut bytes = dag.to_bytes();
+    let serial = ValidateOptions {
+        threads: false,
+        ..ValidateOptions::default()
+    };
+    assert!(validate_with(&bytes, &ValidateOptions::default()).is_valid());
+    // The last section (after the 6 node levels and the leaf level) holds the colours.
+    let (at, len) = section_range(&bytes, 7);
+    assert_eq!(
+        Dag::open(&bytes)
+            .unwrap()
+            .packed_colors()
+            .unwrap()
+            .bytes()
+            .len(),
+        len
+    );
+    bytes[at + len / 2] ^= 0x5a;
+    fix_checksums(&mut bytes);
+    let threaded = validate_with(&bytes, &ValidateOptions::default());
+    assert!(!threaded.is_valid());
+    assert_eq!(threaded, validate_with(&bytes, &serial));
+}

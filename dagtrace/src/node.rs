@@ -463,7 +463,13 @@ impl<'a> Level<'a> {
         fault: &mut Option<Fault>,
     ) -> ChildRef {
         if self.is_v2() {
-            return self.reference_near_end(level, word, rank, fault);
+            return match self.reference(level, word, rank) {
+                Ok(v) => v,
+                Err(f) => ChildRef {
+                    node: record(fault, f),
+                    reflection: 0,
+                },
+            };
         }
         match self.read_u32(self.reference_at(word, rank)) {
             Some(v) => ChildRef {

@@ -462,7 +462,11 @@ impl<'a> Tracer<'a> {
     /// header fields of `header` (depth, root cube, attribute kind; the rest
     /// is not read) and colours `colors`. Answers are those of the 1.0 DAG
     /// of the same voxels. Fails when the levels do not fit the depth or a
-    /// level cannot be decoded (its widths), or as [`Tracer::new`].
+    /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
+    /// offsets that errors of a malformed DAG report are inside the level
+    /// section named (the tracer does not know where the sections lie in a
+    /// file). Batches are traced by the scalar steps (the vector lanes and
+    /// packets read 1.0 records only): see dagtrace/BENCHMARKS.md.
     pub fn from_v2_levels(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],

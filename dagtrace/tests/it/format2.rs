@@ -257,3 +257,18 @@ fn damaged_v2_levels_never_panic() {
     let views = enc.views();
     assert!(Tracer::from_v2_levels(dag.header(), &views[1..], None).is_err());
 }
+
+/// An empty volume: its 2.0 levels hold no records, and every ray misses as
+/// in 1.0.
+#[test]
+fn empty_v2_dag_misses_everything() {
+    let mut rng = Rng(0xe2);
+    for depth in [2u8, 5] {
+        let bytes = build(depth, AttributeKind::VoxelCount, &[], [0.0; 3], 1.0);
+        let dag = Dag::open(&bytes).expect("built DAG opens");
+        let rays: Vec<Ray> = (0..50)
+            .map(|_| random_ray(depth, &[[0, 0, 0]], [0.0; 3], 1.0, &mut rng))
+            .collect();
+        assert_eq!(check_same_answers("empty", &dag, &rays), 0);
+    }
+}

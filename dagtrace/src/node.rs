@@ -321,6 +321,74 @@ impl<'a> Level<'a> {
         (address as usize) << self.address_shift
     }
 
+    /// [`Level::node_byte`] where the caller knows the format: `V2` for a
+    /// 2.0 node level, else 1.0 (the walk is compiled once for each, so
+    /// that 1.0's copy has no 2.0 tests).
+    #[inline(always)]
+    pub(crate) fn node_byte_in<const V2: bool>(&self, address: u32) -> usize {
+        if V2 {
+            address as usize
+        } else {
+            address as usize * HEADER_BYTES as usize
+        }
+    }
+
+    /// [`Level::header`] for the traversal: an out-of-range read records the
+    /// fault (the first one) and reads as 0, a node without children, which
+    /// ends that branch; the caller reports the fault when it is done. This
+    /// keeps `Result` plumbing out of the inner loop.
+    /// `V2`: whether the level is 2.0 (see [`Level::node_byte_in`]).
+    #[inline(always)]
+    pub(crate) fn header_or_fault<const V2: bool>(
+        &self,
+        level: u8,
+        word: u32,
+        fault: &mut Option<Fault>,
+    ) -> u32 {
+        let at = self.node_byte_in::<V2>(word);
+        match self.read_u32(at) {
+            Some(v) => v,
+            None => record(
+                fault,
+                Fault {
+                    level,
+                    at: at as u64,
+                    truncated: false,
+                },
+            ),
+        }
+    }
+
+    /// [`Level::child`] for the traversal (see [`Level::header_or_fault`]);
+    /// `V2`: whether the level is 2.0 (see [`Level::node_byte_in`]).
+    #[inline(always)]
+    pub(crate) fn child_or_fault<const V2: bool>(
+        &self,
+        level: u8,
+        word: u32,
+        mask: u8,
+        child: u32,
+        fault: &mut Option<Fault>,
+    ) -> ChildRef {
+        if V2 {
+            match self.child_v2(level, word, child) {
+                Ok(v) => v,
+                Err(f) => ChildRef {
+                    node: record(fault, f),
+                    reflection: 0,
+                },
+            }
+        } else {
+            match self.read_u32(self.reference_at(word, child_rank(mask, child))) {
+                Some(v) => ChildRef {
+                    node: v & self.pointer_mask,
+                    reflection: 0,
+                },
+                None => self.reference_near_end(level, word, child_rank(mask, child), fault),
+            }
+        }
+    }
+
     #[inline(always)]
     fn read_u32(&self, at: usize) -> Option<u32> {
         match self.bytes.get(at..at + 4) {
@@ -433,25 +501,6 @@ impl<'a> Level<'a> {
         Ok(ChildRef { node, reflection })
     }
 
-    /// [`Level::header`] for the traversal: an out-of-range read records the
-    /// fault (the first one) and reads as 0, a node without children, which
-    /// ends that branch; the caller reports the fault when it is done. This
-    /// keeps `Result` plumbing out of the inner loop.
-    #[inline(always)]
-    pub(crate) fn header_or_fault(&self, level: u8, word: u32, fault: &mut Option<Fault>) -> u32 {
-        match self.read_u32(self.node_byte(word)) {
-            Some(v) => v,
-            None => record(
-                fault,
-                Fault {
-                    level,
-                    at: self.node_byte(word) as u64,
-                    truncated: false,
-                },
-            ),
-        }
-    }
-
     /// [`Level::reference`] for the traversal (see [`Level::header_or_fault`]):
     /// a read outside the level reads as node 0.
     #[inline(always)]
@@ -478,28 +527,6 @@ impl<'a> Level<'a> {
             },
             None => self.reference_near_end(level, word, rank, fault),
         }
-    }
-
-    /// [`Level::child`] for the traversal (see [`Level::header_or_fault`]).
-    #[inline(always)]
-    pub(crate) fn child_or_fault(
-        &self,
-        level: u8,
-        word: u32,
-        mask: u8,
-        child: u32,
-        fault: &mut Option<Fault>,
-    ) -> ChildRef {
-        if self.is_v2() {
-            return match self.child_v2(level, word, child) {
-                Ok(v) => v,
-                Err(f) => ChildRef {
-                    node: record(fault, f),
-                    reflection: 0,
-                },
-            };
-        }
-        self.reference_or_fault(level, word, child_rank(mask, child), fault)
     }
 
     /// The rare reference whose 32-bit load would cross the end of the section.
@@ -755,7 +782,7 @@ mod tests {
                 assert_eq!(attribute(header), *attr);
                 assert_eq!(child_count(*mask) as usize, children.len());
                 let mut fault = None;
-                assert_eq!(level.header_or_fault(3, *word, &mut fault), header);
+                assert_eq!(level.header_or_fault::<false>(3, *word, &mut fault), header);
                 let slots = (0..8).filter(|c| mask >> c & 1 == 1);
                 for (rank, child) in slots.enumerate() {
                     let expected = ChildRef {
@@ -766,7 +793,7 @@ mod tests {
                     assert_eq!(level.child(3, *word, *mask, child).unwrap(), expected);
                     assert_eq!(level.reference(3, *word, rank as u32).unwrap(), expected);
                     assert_eq!(
-                        level.child_or_fault(3, *word, *mask, child, &mut fault),
+                        level.child_or_fault::<false>(3, *word, *mask, child, &mut fault),
                         expected
                     );
                 }
@@ -776,7 +803,7 @@ mod tests {
             let end = (bytes.len() / 4) as u32;
             assert!(level.header(3, end).is_err());
             let mut fault = None;
-            assert_eq!(level.header_or_fault(3, end, &mut fault), 0);
+            assert_eq!(level.header_or_fault::<false>(3, end, &mut fault), 0);
             let f = fault.expect("a fault");
             assert_eq!((f.level, f.at, f.truncated), (3, u64::from(end) * 4, false));
             let mut fault = None;
@@ -875,7 +902,7 @@ mod tests {
                         assert_eq!(level.reference(l as u8, word, rank).unwrap(), expected);
                         let mut fault = None;
                         assert_eq!(
-                            level.child_or_fault(l as u8, word, mask, slot, &mut fault),
+                            level.child_or_fault::<true>(l as u8, word, mask, slot, &mut fault),
                             expected
                         );
                         assert!(fault.is_none());

@@ -1233,6 +1233,23 @@ impl<'a> Tracer<'a> {
         stack: &mut Stack,
         fault: &mut Option<Fault>,
     ) -> Option<Option<Cell>> {
+        if self.v2 {
+            self.resume_in::<true>(walk, stack, fault)
+        } else {
+            self.resume_in::<false>(walk, stack, fault)
+        }
+    }
+
+    /// [`Tracer::resume`] compiled for one format: `V2` for 2.0, else 1.0,
+    /// whose copy carries no reflection (R = 0 everywhere) and reads nodes
+    /// without 2.0 tests.
+    #[inline(always)]
+    fn resume_in<const V2: bool>(
+        &self,
+        walk: &mut Walk,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Option<Option<Cell>> {
         let q = &walk.q;
         // The ray's octant; a node reached with accumulated reflection R is
         // traced as a 1.0 node in octant `ray_neg ^ R` (spec §23.4): `neg`
@@ -1247,10 +1264,10 @@ impl<'a> Tracer<'a> {
         if walk.pending == Pending::Node {
             // Visit the node: the children the ray passes through.
             word = walk.target;
-            reflection = walk.reflection;
+            reflection = if V2 { walk.reflection } else { 0 };
             let neg = ray_neg ^ usize::from(reflection & 7);
-            let header =
-                self.levels[usize::from(level) & LEVEL_INDEX].header_or_fault(level, word, fault);
+            let header = self.levels[usize::from(level) & LEVEL_INDEX]
+                .header_or_fault::<V2>(level, word, fault);
             let t_lo = (pos - origin) * inv_dir;
             let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
             let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
@@ -1266,8 +1283,9 @@ impl<'a> Tracer<'a> {
             // A brick below the node the walk stands on, whose frame is on
             // the stack.
             let leaf = walk.target;
+            let leaf_reflection = if V2 { walk.reflection } else { 0 };
             if let Some((cell, cell_level)) =
-                self.brick(q, leaf, walk.reflection, walk.brick_pos, fault)
+                self.brick(q, leaf, leaf_reflection, walk.brick_pos, fault)
             {
                 return Some(Some((cell, cell_level, leaf)));
             }
@@ -1275,7 +1293,7 @@ impl<'a> Tracer<'a> {
             word = frame.word;
             mask = frame.mask;
             remaining = frame.remaining;
-            reflection = frame.reflection;
+            reflection = if V2 { frame.reflection } else { 0 };
         }
         while remaining == 0 {
             if level == walk.top {
@@ -1284,19 +1302,21 @@ impl<'a> Tracer<'a> {
             // Back to the parent: undo the step into this node.
             level -= 1;
             let parent = stack[usize::from(level) & LEVEL_INDEX];
-            let parent_neg = ray_neg ^ usize::from(parent.reflection);
+            let parent_reflection = if V2 { parent.reflection } else { 0 };
+            let parent_neg = ray_neg ^ usize::from(parent_reflection);
             pos -= CHILD_STEPS[(usize::from(parent.last) ^ parent_neg) & 7] * size;
             size *= 2.0;
             word = parent.word;
             mask = parent.mask;
             remaining = parent.remaining;
-            reflection = parent.reflection;
+            reflection = parent_reflection;
         }
         let neg = (ray_neg ^ usize::from(reflection)) & 7;
         let child = FIRST[neg][usize::from(remaining)];
         remaining &= !(1 << child);
         let l = usize::from(level) & LEVEL_INDEX;
-        let reference = self.levels[l].child_or_fault(level, word, mask, u32::from(child), fault);
+        let reference =
+            self.levels[l].child_or_fault::<V2>(level, word, mask, u32::from(child), fault);
         let pointer = reference.node;
         let half = size * 0.5;
         let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
@@ -1307,7 +1327,11 @@ impl<'a> Tracer<'a> {
             last: child,
             reflection,
         };
-        let child_reflection = (reflection ^ reference.reflection) & 7;
+        let child_reflection = if V2 {
+            (reflection ^ reference.reflection) & 7
+        } else {
+            0
+        };
         let child_level = level + 1;
         if child_level == stop {
             if stop == q.level {
@@ -1326,7 +1350,7 @@ impl<'a> Tracer<'a> {
             return None;
         }
         let next = &self.levels[usize::from(child_level) & LEVEL_INDEX];
-        prefetch(next.bytes, next.node_byte(pointer));
+        prefetch(next.bytes, next.node_byte_in::<V2>(pointer));
         walk.pending = Pending::Node;
         walk.target = pointer;
         walk.reflection = child_reflection;

@@ -104,99 +104,208 @@ fn truncated(at: u64) -> FormatError {
     )
 }
 
-/// Reads `width` bits at bit `bit` of `bytes`, least significant bit first.
-fn read_bits(bytes: &[u8], bit: u64, width: u32) -> Option<u64> {
-    let mut v = 0u64;
-    let mut got = 0u32;
-    let mut pos = bit;
-    while got < width {
-        let byte = *bytes.get(usize::try_from(pos / 8).ok()?)?;
-        let shift = (pos % 8) as u32;
-        let take = (8 - shift).min(width - got);
-        let part = (u64::from(byte) >> shift) & ((1u64 << take) - 1);
-        v |= part << got;
-        got += take;
-        pos += u64::from(take);
+/// Reads `width` (at most 56) bits at bit `bit` of `bytes`, least
+/// significant bit first, with one unaligned 64-bit load where 8 bytes are
+/// left. `None` when the bits run past the end of `bytes`.
+#[inline(always)]
+fn bits_at(bytes: &[u8], bit: u64, width: u32) -> Option<u64> {
+    debug_assert!(width <= 56);
+    let end = bit.checked_add(u64::from(width))?.div_ceil(8);
+    if end > bytes.len() as u64 {
+        return None;
     }
-    Some(v)
+    let at = (bit / 8) as usize;
+    let word = match bytes.get(at..at + 8) {
+        Some(b) => u64::from_le_bytes(b.try_into().expect("8 bytes")),
+        None => {
+            // Within 8 bytes of the end: the missing bytes read as 0, and
+            // `end` above keeps them out of the value.
+            let rest = bytes.get(at..)?;
+            let mut buf = [0u8; 8];
+            buf[..rest.len()].copy_from_slice(rest);
+            u64::from_le_bytes(buf)
+        }
+    };
+    Some((word >> (bit % 8)) & ((1u64 << width) - 1))
 }
 
-/// Decodes the node record at byte `offset` of a 2.0 interior level with
-/// `widths` (§23.2): its header, its size and each child's reference. Never
-/// panics: a record that runs past `level` is an error (E071).
-pub fn decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, FormatError> {
-    if widths.iter().any(|&w| u32::from(w) > MAX_WIDTH) {
-        // E070 of §23.10 once the 2.0 container exists; E026 is its 1.0 form.
-        return Err(FormatError::new(
-            ErrorCode::BadPointerWidth,
-            offset,
-            format!("2.0 reference widths {widths:?} exceed {MAX_WIDTH} bits"),
-        ));
+/// Bits 0, 2, 4, … of the code word: the low bit of each 2-bit code.
+const LOW_BITS: u32 = 0x5_5555;
+
+/// A level's reference coding (§23.2) in the form the decoding uses: the
+/// width in bits of the reference of each 2-bit code (code 0: none).
+///
+/// With [`Coding::codes`], [`Coding::child`] and [`Coding::record_size`] it
+/// is the one decoder of 2.0 records: [`decode_node`] and the CPU tracer
+/// (`dagtrace`) both read records through it. A reference is found without
+/// a loop over the codes before it: the bit offset of a reference is `2m +
+/// n_1·w_1 + n_2·w_2 + n_3·w_3` (§23.8), the `n_j` being popcounts of the
+/// code word.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Coding {
+    width: [u32; 4],
+}
+
+/// A record's header word and its 2-bit codes, read by [`Coding::codes`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Codes {
+    /// The 32-bit header word (child mask by physical slot, attribute).
+    pub header: u32,
+    /// The m codes, code i in bits 2i and 2i + 1; no bits above them.
+    codes: u32,
+    /// m: the number of codes (k, or k + 1 with a base reference).
+    count: u32,
+}
+
+impl Codes {
+    /// The child mask (by physical slot).
+    pub fn child_mask(&self) -> u8 {
+        self.header as u8
     }
-    if offset >= level.len() as u64 {
-        return Err(truncated(offset));
-    }
-    let start = offset as usize;
-    let header = crate::reader::read_u32(level, start).ok_or_else(|| truncated(offset))?;
-    let mask = header as u8;
-    let k = mask.count_ones();
-    let stream = level.get(start + 4..).ok_or_else(|| truncated(offset))?;
-    let mut codes = [0u8; 9];
-    for (i, c) in codes.iter_mut().enumerate().take(k as usize) {
-        *c = read_bits(stream, 2 * i as u64, 2).ok_or_else(|| truncated(offset))? as u8;
-    }
-    let has_base = codes[..k as usize].contains(&0);
-    let m = k + u32::from(has_base);
-    if has_base {
-        codes[k as usize] =
-            read_bits(stream, 2 * u64::from(k), 2).ok_or_else(|| truncated(offset))? as u8;
-    }
-    let width = |code: u8| -> u32 { u32::from(widths[usize::from(code.max(1)) - 1]) };
-    let mut bit = 2 * u64::from(m);
-    let mut children = [None; 8];
-    let mut rank = 0usize;
-    for (slot, child) in children.iter_mut().enumerate() {
-        if mask >> slot & 1 == 0 {
-            continue;
+}
+
+impl Coding {
+    /// The coding of a level with widths `widths` (w_1, w_2, w_3). Fails when
+    /// a width is 0 or above [`MAX_WIDTH`] (E070 of §23.10 once the 2.0
+    /// container exists; E026 is its 1.0 form).
+    pub fn new(widths: [u8; 3]) -> Result<Self, FormatError> {
+        if widths.iter().any(|&w| w == 0 || u32::from(w) > MAX_WIDTH) {
+            return Err(FormatError::new(
+                ErrorCode::BadPointerWidth,
+                0,
+                format!("2.0 reference widths {widths:?} are not all in 1..={MAX_WIDTH} bits"),
+            ));
         }
-        let code = codes[rank];
-        rank += 1;
+        Ok(Coding {
+            width: [
+                0,
+                u32::from(widths[0]),
+                u32::from(widths[1]),
+                u32::from(widths[2]),
+            ],
+        })
+    }
+
+    /// The bits of the references of the codes in `codes` (a prefix of a
+    /// record's code word).
+    #[inline(always)]
+    fn reference_bits(&self, codes: u32) -> u64 {
+        let low = codes & LOW_BITS;
+        let high = (codes >> 1) & LOW_BITS;
+        u64::from((low & !high).count_ones()) * u64::from(self.width[1])
+            + u64::from((high & !low).count_ones()) * u64::from(self.width[2])
+            + u64::from((low & high).count_ones()) * u64::from(self.width[3])
+    }
+
+    /// The header and codes of the record at byte `offset` of `level`;
+    /// `None` when they run past its end.
+    #[inline(always)]
+    pub fn codes(&self, level: &[u8], offset: u64) -> Option<Codes> {
+        let start = usize::try_from(offset).ok()?;
+        let header = crate::reader::read_u32(level, start)?;
+        let k = (header as u8).count_ones();
+        if k == 0 {
+            return Some(Codes {
+                header,
+                codes: 0,
+                count: 0,
+            });
+        }
+        // k codes and the base code, if any: at most 18 bits, all within the
+        // record (a record of k ≥ 2 shared children has at least 3k bits, one
+        // of a single shared child at least a byte).
+        let raw = bits_at(level, (offset + 4) * 8, 2 * k + 2)? as u32;
+        let k_codes = raw & ((1 << (2 * k)) - 1);
+        let shared = ((k_codes | k_codes >> 1) & LOW_BITS).count_ones();
+        let count = k + u32::from(shared < k);
+        let mut codes = raw & ((1 << (2 * count)) - 1);
+        if count > k && codes >> (2 * k) == 0 {
+            // The base reference's code is never 0 in a valid record; it
+            // reads as code 1 if it is (the validator reports it).
+            codes |= 1 << (2 * k);
+        }
+        Some(Codes {
+            header,
+            codes,
+            count,
+        })
+    }
+
+    /// Bytes of a record with codes `codes` (§23.2).
+    #[inline(always)]
+    pub fn size(&self, codes: &Codes) -> u64 {
+        4 + (2 * u64::from(codes.count) + self.reference_bits(codes.codes)).div_ceil(8)
+    }
+
+    /// Bytes of the record at byte `offset` of `level`, from its header and
+    /// codes; `None` when they run past its end.
+    #[inline(always)]
+    pub fn record_size(&self, level: &[u8], offset: u64) -> Option<u64> {
+        Some(self.size(&self.codes(level, offset)?))
+    }
+
+    /// The child at physical slot `slot` (0..8, set in the child mask) of the
+    /// record at byte `offset` of `level`, whose header and codes are
+    /// `codes`; `None` when its reference runs past the end of `level`.
+    #[inline(always)]
+    pub fn child(&self, level: &[u8], offset: u64, codes: &Codes, slot: u32) -> Option<Child> {
+        let mask = u32::from(codes.child_mask());
+        let rank = (mask & ((1 << (slot & 7)) - 1)).count_ones();
+        let code = (codes.codes >> (2 * rank)) & 3;
+        let before = codes.codes & ((1 << (2 * rank)) - 1);
+        let stream = (offset + 4) * 8 + 2 * u64::from(codes.count);
         if code != 0 {
-            let w = width(code);
-            let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
-            bit += u64::from(w);
-            *child = Some(Child::Shared {
+            let v = bits_at(
+                level,
+                stream + self.reference_bits(before),
+                self.width[code as usize],
+            )?;
+            return Some(Child::Shared {
                 target: v >> 3,
                 reflection: (v & 7) as u8,
             });
         }
+        let k = mask.count_ones();
+        let child_codes = codes.codes & ((1 << (2 * k)) - 1);
+        let base_code = (codes.codes >> (2 * k)) & 3;
+        let base = bits_at(
+            level,
+            stream + self.reference_bits(child_codes),
+            self.width[base_code as usize],
+        )?;
+        let shared_before = ((before | before >> 1) & LOW_BITS).count_ones();
+        Some(Child::Sequential {
+            base,
+            index: rank - shared_before,
+        })
     }
-    let base = if has_base {
-        let w = width(codes[k as usize]);
-        let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
-        bit += u64::from(w);
-        v
-    } else {
-        0
-    };
-    let mut index = 0u32;
-    let mut rank = 0usize;
-    for (slot, child) in children.iter_mut().enumerate() {
-        if mask >> slot & 1 == 0 {
-            continue;
-        }
-        if codes[rank] == 0 {
-            *child = Some(Child::Sequential { base, index });
-            index += 1;
-        }
-        rank += 1;
-    }
-    let size = 4 + bit.div_ceil(8);
-    if start as u64 + size > level.len() as u64 {
+}
+
+/// Decodes the node record at byte `offset` of a 2.0 interior level with
+/// `widths` (§23.2): its header, its size and each child's reference. Never
+/// panics: a record that runs past `level` is an error (E071). Reads through
+/// [`Coding`], as the tracer does.
+pub fn decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, FormatError> {
+    let coding = Coding::new(widths).map_err(|e| FormatError::new(e.code, offset, e.message))?;
+    let codes = coding
+        .codes(level, offset)
+        .ok_or_else(|| truncated(offset))?;
+    let size = coding.size(&codes);
+    if offset.saturating_add(size) > level.len() as u64 {
         return Err(truncated(offset));
     }
+    let mut children = [None; 8];
+    for (slot, child) in children.iter_mut().enumerate() {
+        if codes.child_mask() >> slot & 1 != 0 {
+            *child = Some(
+                coding
+                    .child(level, offset, &codes, slot as u32)
+                    .ok_or_else(|| truncated(offset))?,
+            );
+        }
+    }
     Ok(Node2 {
-        header,
+        header: codes.header,
         size: size as u32,
         children,
     })
@@ -223,6 +332,39 @@ pub fn child_address(
                 Ok((at, 0))
             }
         },
+    }
+}
+
+/// One level section of a 2.0 DAG, borrowed: what a reader hands out per
+/// level (from a memory-mapped file) and what tracers take.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LevelView<'a> {
+    /// The section bytes: records (interior level) or 64-bit leaf masks.
+    pub bytes: &'a [u8],
+    /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
+    pub widths: [u8; 3],
+    /// Records or leaves in the section.
+    pub item_count: u64,
+    /// Whether this is the leaf level.
+    pub is_leaf: bool,
+}
+
+impl EncodedLevel {
+    /// The level as a [`LevelView`].
+    pub fn view(&self) -> LevelView<'_> {
+        LevelView {
+            bytes: &self.bytes,
+            widths: self.widths,
+            item_count: self.item_count,
+            is_leaf: self.is_leaf,
+        }
+    }
+}
+
+impl Encoded {
+    /// The levels as [`LevelView`]s, root first.
+    pub fn views(&self) -> Vec<LevelView<'_>> {
+        self.levels.iter().map(EncodedLevel::view).collect()
     }
 }
 
@@ -689,6 +831,122 @@ mod tests {
         })
         .unwrap();
         out
+    }
+
+    /// Reads `width` bits at bit `bit` of `bytes`, least significant bit first.
+    fn read_bits(bytes: &[u8], bit: u64, width: u32) -> Option<u64> {
+        let mut v = 0u64;
+        let mut got = 0u32;
+        let mut pos = bit;
+        while got < width {
+            let byte = *bytes.get(usize::try_from(pos / 8).ok()?)?;
+            let shift = (pos % 8) as u32;
+            let take = (8 - shift).min(width - got);
+            let part = (u64::from(byte) >> shift) & ((1u64 << take) - 1);
+            v |= part << got;
+            got += take;
+            pos += u64::from(take);
+        }
+        Some(v)
+    }
+
+    /// The first decoder of §23.2, bit by bit and code by code: the oracle
+    /// of [`Coding`]. Decodes the node record at byte `offset` of a 2.0 interior level with
+    /// `widths` (§23.2): its header, its size and each child's reference. Never
+    /// panics: a record that runs past `level` is an error (E071).
+    fn naive_decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, FormatError> {
+        if widths.iter().any(|&w| u32::from(w) > MAX_WIDTH) {
+            // E070 of §23.10 once the 2.0 container exists; E026 is its 1.0 form.
+            return Err(FormatError::new(
+                ErrorCode::BadPointerWidth,
+                offset,
+                format!("2.0 reference widths {widths:?} exceed {MAX_WIDTH} bits"),
+            ));
+        }
+        if offset >= level.len() as u64 {
+            return Err(truncated(offset));
+        }
+        let start = offset as usize;
+        let header = crate::reader::read_u32(level, start).ok_or_else(|| truncated(offset))?;
+        let mask = header as u8;
+        let k = mask.count_ones();
+        let stream = level.get(start + 4..).ok_or_else(|| truncated(offset))?;
+        let mut codes = [0u8; 9];
+        for (i, c) in codes.iter_mut().enumerate().take(k as usize) {
+            *c = read_bits(stream, 2 * i as u64, 2).ok_or_else(|| truncated(offset))? as u8;
+        }
+        let has_base = codes[..k as usize].contains(&0);
+        let m = k + u32::from(has_base);
+        if has_base {
+            codes[k as usize] =
+                read_bits(stream, 2 * u64::from(k), 2).ok_or_else(|| truncated(offset))? as u8;
+        }
+        let width = |code: u8| -> u32 { u32::from(widths[usize::from(code.max(1)) - 1]) };
+        let mut bit = 2 * u64::from(m);
+        let mut children = [None; 8];
+        let mut rank = 0usize;
+        for (slot, child) in children.iter_mut().enumerate() {
+            if mask >> slot & 1 == 0 {
+                continue;
+            }
+            let code = codes[rank];
+            rank += 1;
+            if code != 0 {
+                let w = width(code);
+                let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
+                bit += u64::from(w);
+                *child = Some(Child::Shared {
+                    target: v >> 3,
+                    reflection: (v & 7) as u8,
+                });
+            }
+        }
+        let base = if has_base {
+            let w = width(codes[k as usize]);
+            let v = read_bits(stream, bit, w).ok_or_else(|| truncated(offset))?;
+            bit += u64::from(w);
+            v
+        } else {
+            0
+        };
+        let mut index = 0u32;
+        let mut rank = 0usize;
+        for (slot, child) in children.iter_mut().enumerate() {
+            if mask >> slot & 1 == 0 {
+                continue;
+            }
+            if codes[rank] == 0 {
+                *child = Some(Child::Sequential { base, index });
+                index += 1;
+            }
+            rank += 1;
+        }
+        let size = 4 + bit.div_ceil(8);
+        if start as u64 + size > level.len() as u64 {
+            return Err(truncated(offset));
+        }
+        Ok(Node2 {
+            header,
+            size: size as u32,
+            children,
+        })
+    }
+
+    proptest! {
+        // The fast decoder reads every record, or fails, as the bit-by-bit
+        // one does.
+        #[test]
+        fn coding_decodes_as_the_bit_by_bit_decoder(
+            bytes in proptest::collection::vec(any::<u8>(), 0..64),
+            offset in 0u64..70,
+            widths in proptest::array::uniform3(1u8..=44),
+        ) {
+            let fast = decode_node(&bytes, offset, widths).ok();
+            let naive = naive_decode_node(&bytes, offset, widths).ok();
+            prop_assert_eq!(fast, naive);
+            // A width of 0 holds no reference (E070): refused.
+            prop_assert!(decode_node(&bytes, offset, [0, widths[1], widths[2]]).is_err());
+        }
     }
 
     proptest! {

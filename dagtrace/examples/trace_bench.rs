@@ -31,6 +31,16 @@
 //! The voxel tracer runs without the attribute index (closest hit: t, cell,
 //! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 //!
+//! `--format2` instead compares format 2.0 with 1.0 (issue 42): it encodes
+//! each file's DAG as 2.0 in memory (`dagfmt::v2::encode`, the level sections
+//! a 2.0 file holds; its time is printed), and times the batch API of the
+//! 2.0 tracer ([`Tracer::from_v2_levels`]) against the 1.0 tracer's, both
+//! on one core ([`Tracer::trace_sequential_into`]) and on all cores
+//! ([`Tracer::trace_batch_into`]), runs alternating as above; it prints the
+//! medians and the median of the per-run ratios 2.0 / 1.0 of the rates, and
+//! checks that both give the same answers (up to the choice among exactly
+//! tied cells that the 1.0 packets may make, counted).
+//!
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
 //! ([`dagtrace::Gathers`]), and adds the median of the per-run ratios of
@@ -94,6 +104,10 @@ struct Args {
     /// twice, eight lanes then sixteen, all alternating in the same run).
     #[arg(long, value_enum, default_value_t = LaneArg::Auto)]
     lanes: LaneArg,
+    /// Compare the batch rate of the format 2.0 encoding of each file's
+    /// voxels with the 1.0 file's (no mesh, no `trace()` figures).
+    #[arg(long)]
+    format2: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -350,7 +364,121 @@ fn run(args: Args) -> Result<(), String> {
         }
     );
     for path in &args.vdags {
-        bench_file(&args, path, mesh.as_ref())?;
+        if args.format2 {
+            bench_versions(&args, path)?;
+        } else {
+            bench_file(&args, path, mesh.as_ref())?;
+        }
+    }
+    Ok(())
+}
+
+/// The ray sets of `dag` that `args` asks for: camera rays row by row, in
+/// tiles, random rays.
+fn ray_sets(args: &Args, dag: &Dag<'_>) -> Result<Vec<(String, Vec<Ray>)>, String> {
+    let header = dag.header();
+    let camera = Camera::automatic(dag, f64::from(args.width) / f64::from(args.height))
+        .frame()
+        .map_err(|e| e.to_string())?;
+    let sets = [
+        (
+            format!("camera {}x{}", args.width, args.height),
+            camera.rays(args.width, args.height, None),
+        ),
+        (
+            // The same rays in 8x8 pixel tiles, as `dagtrace render` traces
+            // them (both tracers get this order).
+            format!("tiles {}x{}", args.width, args.height),
+            camera.rays_in_tiles(args.width, args.height, None).0,
+        ),
+        (
+            format!("random {}", args.random),
+            random_rays(header.root_min, header.root_size, args.random),
+        ),
+    ];
+    Ok(sets
+        .into_iter()
+        .filter(|(name, _)| {
+            args.only
+                .as_ref()
+                .is_none_or(|only| name.starts_with(only.as_str()))
+        })
+        .collect())
+}
+
+/// `--format2`: the batch rates of the 2.0 encoding of `path`'s voxels and
+/// of the 1.0 file, alternating, with their per-run ratios.
+fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
+    let file = MappedFile::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
+    let start = Instant::now();
+    let encoded = dagfmt::v2::encode(&dag).map_err(|e| format!("{}: {e}", path.display()))?;
+    let encode_s = start.elapsed().as_secs_f64();
+    let views = encoded.views();
+    let v1 = Tracer::new(&dag)
+        .map_err(|e| e.to_string())?
+        .with_index(args.index);
+    let v2 = Tracer::from_v2_levels(dag.header(), &views, dag.color_table())
+        .map_err(|e| e.to_string())?
+        .with_index(args.index);
+    let header = dag.header();
+    let v1_bytes: usize = dag.levels().iter().map(|l| l.bytes.len()).sum();
+    println!(
+        "{}: depth {}, {} voxels; level bytes 1.0 {v1_bytes}, 2.0 {} ({:.3}x; encoded in {encode_s:.1} s)",
+        path.display(),
+        header.depth,
+        header.voxel_count,
+        encoded.level_bytes(),
+        encoded.level_bytes() as f64 / v1_bytes as f64
+    );
+    for (name, rays) in ray_sets(args, &dag)? {
+        let n = rays.len();
+        let mut hits = [vec![Hit::MISS; n], vec![Hit::MISS; n]];
+        let tracers = [(v1.clone(), String::new()), (v2.clone(), String::new())];
+        let (one, all) = {
+            let [h1, h2] = &mut hits;
+            let mut f1 = || {
+                let _ = tracers[0].0.trace_sequential_into(&rays, h1);
+            };
+            let mut f2 = || {
+                let _ = tracers[1].0.trace_sequential_into(&rays, h2);
+            };
+            let one = alternate(args.runs, n, &mut [&mut f1, &mut f2]);
+            let mut batch = per_setting(&tracers, &rays, &mut hits, Tracer::trace_batch_into);
+            let mut timed: Vec<&mut dyn FnMut()> =
+                batch.iter_mut().map(|f| f as &mut dyn FnMut()).collect();
+            let all = alternate(args.runs, n, &mut timed);
+            (one, all)
+        };
+        // The 1.0 packets may pick another of exactly tied cells; 2.0 traces
+        // ray by ray (trace()'s answers).
+        let differ = hits[0].iter().zip(&hits[1]).filter(|(a, b)| a != b).count();
+        if differ * 1000 > n {
+            return Err(format!(
+                "{name}: 2.0 and 1.0 answer {differ} of {n} rays differently"
+            ));
+        }
+        let hit_count = hits[1].iter().filter(|h| h.hit).count();
+        let m = |v: &Vec<f64>| mrays(median(v.clone()));
+        println!(
+            "{name:>18}  1.0: 1 core {} / {}   all cores {}   ({:.1}% hit)",
+            m(&one[0].0),
+            m(&one[0].1),
+            m(&all[0].0),
+            100.0 * hit_count as f64 / n as f64
+        );
+        println!(
+            "{name:>18}  2.0: 1 core {} / {}   all cores {}   ({differ} answers differ: ties)",
+            m(&one[1].0),
+            m(&one[1].1),
+            m(&all[1].0),
+        );
+        println!(
+            "{name:>18}  2.0 / 1.0 rate: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
+            ratio(&one[1].0, &one[0].0),
+            ratio(&one[1].1, &one[0].1),
+            ratio(&all[1].0, &all[0].0),
+        );
     }
     Ok(())
 }
@@ -390,33 +518,8 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             _ => "eight",
         }
     );
-    let camera = Camera::automatic(&dag, f64::from(args.width) / f64::from(args.height))
-        .frame()
-        .map_err(|e| e.to_string())?;
-    let sets = [
-        (
-            format!("camera {}x{}", args.width, args.height),
-            camera.rays(args.width, args.height, None),
-        ),
-        (
-            // The same rays in 8x8 pixel tiles, as `dagtrace render` traces
-            // them (both tracers get this order).
-            format!("tiles {}x{}", args.width, args.height),
-            camera.rays_in_tiles(args.width, args.height, None).0,
-        ),
-        (
-            format!("random {}", args.random),
-            random_rays(header.root_min, header.root_size, args.random),
-        ),
-    ];
+    let sets = ray_sets(args, &dag)?;
     for (name, rays) in &sets {
-        if args
-            .only
-            .as_ref()
-            .is_some_and(|only| !name.starts_with(only.as_str()))
-        {
-            continue;
-        }
         let n = rays.len();
         let mut mode_hits = vec![vec![Hit::MISS; n]; tracers.len()];
         let mut single_hits = vec![Hit::MISS; n];

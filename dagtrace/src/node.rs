@@ -3,7 +3,7 @@
 //! §10).
 //!
 //! Every traversal path reads the DAG through this module: the per-ray walk
-//! and the attribute index (`tracer`), the packets (`packet`), the scalar
+//! and the attribute index (`walk`), the packets (`packet`), the scalar
 //! tails of the vector lanes and, in [`lanes`], the few vector operations
 //! that the eight- and sixteen-lane steps (`simd`) use to decode the node
 //! words they gather. `occupancy_around` and the saturated counts go through
@@ -12,21 +12,34 @@
 //!
 //! # The interface
 //!
-//! - [`Level`]: one stored level. [`Level::header`] reads a node's header,
+//! - [`Level`]: one stored level, of a 1.0 file ([`Level::new`]) or of a 2.0
+//!   DAG ([`Level::new_v2`]). [`Level::header`] reads a node's header,
 //!   [`child_mask`] and [`attribute`] split it; [`Level::child`] finds the
-//!   reference of a child (by its slot in the child mask) and returns a
-//!   [`ChildRef`]: where the child is in the next level, and the reflection
-//!   the reference carries; [`Level::reference`] reads the `rank`-th stored
-//!   reference (to walk all of a node's children); [`Level::leaf`] reads a
-//!   leaf mask. The `_or_fault` forms are the traversal's: a read outside the
-//!   level records a [`Fault`] and reads as an empty node or leaf.
-//! - Leaf masks: [`voxel_bit`], [`sub_brick_mask`], [`voxels_below`].
+//!   reference of a child (by its *physical* slot in the child mask) and
+//!   returns a [`ChildRef`]: the child's address in the next level, and the
+//!   reflection the reference carries; [`Level::reference`] reads the
+//!   `rank`-th stored reference (to walk all of a node's children);
+//!   [`Level::leaf`] reads a leaf mask. The `_or_fault` forms are the
+//!   traversal's: a read outside the level records a [`Fault`] and reads as
+//!   an empty node or leaf.
+//! - Leaf masks: [`voxel_bit`], [`sub_brick_mask`], [`voxels_below`];
+//!   [`logical_leaf`] reflects a 2.0 leaf's mask.
 //!
-//! # How format 2.0 plugs in (the plan)
+//! # Format 2.0
 //!
-//! Format 2.0 (issue 42) gives each reference a 3-bit reflection `r` (bit 0
-//! mirrors x, bit 1 y, bit 2 z) and stores references with variable lengths.
-//! The contract shared with the format:
+//! Format 2.0 (spec §23) gives each reference a 3-bit reflection `r` (bit 0
+//! mirrors x, bit 1 y, bit 2 z), stores references bit-packed in three
+//! widths per level, and names a node's *sequential* children (stored once,
+//! right after each other) by one base reference. A node's address is its
+//! byte offset (records are unaligned), a 1.0 node's its word offset.
+//! [`Level::child`] decodes a 2.0 reference through `dagfmt::v2::Coding`,
+//! the one decoder of 2.0 records (dagfmt's `decode_node` reads through it
+//! too); a sequential child of an interior level is found by adding the
+//! sizes of its sequential siblings before it, read from their headers and
+//! codes in the child level. [`ChildRef::reflection`] is 0 for every 1.0
+//! file.
+//!
+//! The traversal contract (spec §23.4, §23.5):
 //!
 //! - reflections compose by XOR; descending through a reference with
 //!   reflection `r` from a node reached with accumulated reflection `R`
@@ -35,42 +48,37 @@
 //!   slot `c ^ R`; in a leaf, logical bit `b` (spec §10) is physical bit
 //!   `b ^ (R | R << 3)`;
 //! - the attribute index sums the counts of the children at physical slots
-//!   `p` with `(p ^ R) < c`, and in a leaf popcounts the mask reflected by
-//!   `R` below `b`.
+//!   `p` with `(p ^ R) < c` ([`SIBLINGS_BEFORE`]), and in a leaf popcounts
+//!   the mask reflected by `R` ([`logical_leaf`]) below `b`.
 //!
-//! What changes, and where:
+//! How the tracer follows it:
 //!
-//! 1. Here: [`Level::child`] and [`Level::reference`] decode the 2.0
-//!    reference (its length from its tag, its reflection) instead of
-//!    `rank * width`, and fill [`ChildRef::reflection`], which is 0 for every
-//!    1.0 file. `Level` gains the per-level reference coding; the vector
-//!    forms in [`lanes`] gain the same decoding (or the vector steps hand
-//!    2.0 references to the scalar tail, as they already do for references
-//!    near a section's end).
-//! 2. In the traversal state: the traversal mirrors every ray into the octant
-//!    where its direction is positive, and all its node-level lookups
-//!    (`CHAIN`, `FIRST`, the child positions) are indexed by that octant,
-//!    `neg`, in the *physical* child numbering. A node reached with `R` is
-//!    therefore traced exactly like a 1.0 node by a ray whose octant is
-//!    `neg ^ R`: the physical slot of logical child `c` seen from the mirrored
-//!    frame is `c ^ neg ^ R`. So the walk carries `R` in each stack frame
-//!    (`Frame::_pad` is free) and uses `neg ^ R` where it now uses `neg`; a
-//!    child's `R` is the frame's `R ^ ChildRef::reflection`. The brick test
-//!    likewise uses `neg ^ R` for both of its levels (the sub-brick byte and
-//!    the voxel bit inside it are each indexed by three axis bits, so
-//!    reflecting both is `b ^ (R | R << 3)`).
-//! 3. In the attribute index (`Tracer::index_from`) and
-//!    `Tracer::occupancy_around`: the logical child of the cell's path is
-//!    `c`, the physical slot `c ^ R`; the earlier siblings are the physical
-//!    slots `p` with `p ^ R < c` (no longer a prefix of the mask), and the
-//!    leaf's rank is [`voxels_below`] of the reflected mask.
-//!
-//! The accumulated reflection is not carried yet: a 1.0 file has none, and
-//! carrying it belongs with the code that reads 2.0 references, so that it
-//! is tested against real mirrored subtrees rather than left as an
-//! untested path.
+//! 1. The traversal (`walk`) mirrors every ray into the octant where its
+//!    direction is positive, and all its node-level lookups (`CHAIN`,
+//!    `FIRST`, the child positions) are indexed by that octant, `neg`, in
+//!    the physical child numbering. A node reached with `R` is therefore
+//!    traced exactly like a 1.0 node by a ray whose octant is `neg ^ R`: the
+//!    physical slot of logical child `c` seen from the mirrored frame is
+//!    `c ^ neg ^ R`. So each stack frame (`Frame::reflection`) and the walk's
+//!    next target (`Walk::reflection`) carry `R`, the walk uses `neg ^ R`
+//!    where 1.0 used `neg`, and a child's `R` is its parent's `R ^
+//!    ChildRef::reflection`. The brick test likewise uses `neg ^ R` for both
+//!    of its levels (the sub-brick byte and the voxel bit inside it are each
+//!    indexed by three axis bits, so reflecting both is `b ^ (R | R << 3)`).
+//!    In 1.0, `R` is 0 everywhere.
+//! 2. The attribute index (`Tracer::index_from`), `Tracer::occupancy_around`
+//!    (through `Tracer::lookup`), the occupied box and the saturated counts
+//!    take the logical child `c` of the cell's path at physical slot `c ^
+//!    R`, the earlier siblings from [`SIBLINGS_BEFORE`], and the leaf's rank
+//!    from [`voxels_below`] of [`logical_leaf`].
+//! 3. The vector lanes (`simd`) and packets (`packet`) decode 1.0 records
+//!    only: a 2.0 tracer hands its whole batch to the scalar steps
+//!    (`Tracer::trace_lanes_scalar`, eight rays in flight), and has packets
+//!    off. The answers are those of every other path; see
+//!    dagtrace/BENCHMARKS.md for what it costs.
 
 use dagfmt::layout::{CHILD_MASK_BITS, leaf_bit};
+use dagfmt::v2::{Child, Coding, LevelView};
 
 use crate::tables::POPCOUNT8;
 
@@ -185,7 +193,13 @@ pub(crate) fn child_at(cell: [u32; 3], shift: u8) -> u32 {
     (cell[0] >> s & 1) | (cell[1] >> s & 1) << 1 | (cell[2] >> s & 1) << 2
 }
 
-/// One stored level: its bytes and pointer width.
+/// One stored level: its bytes and how its references are coded (1.0:
+/// pointers of one width; 2.0: the level's [`Coding`] and, for sequential
+/// children, the child level's records).
+///
+/// A node's *address* is its word offset in 1.0 (records are 4-byte
+/// aligned) and its byte offset in 2.0 (records are unaligned):
+/// `byte = address << address_shift`.
 #[derive(Clone, Copy, Debug, Default)]
 pub(crate) struct Level<'a> {
     pub(crate) bytes: &'a [u8],
@@ -195,14 +209,28 @@ pub(crate) struct Level<'a> {
     /// masking the bytes that follow it away.
     pub(crate) readable: &'a [u8],
     pub(crate) file_offset: u64,
-    /// Pointer width in bytes (node levels).
+    /// Pointer width in bytes (1.0 node levels; 0 in 2.0).
     pub(crate) width: u32,
     /// Mask keeping the low `width` bytes of a 32-bit load.
     pointer_mask: u32,
+    /// Shift from a node's address to its byte offset: 2 in 1.0, 0 in 2.0.
+    address_shift: u32,
+    /// The 2.0 form of a node level, `None` in 1.0 and for leaves.
+    v2: Option<Coded<'a>>,
+}
+
+/// What a 2.0 node level needs to find its children (spec §23.2, §23.3).
+#[derive(Clone, Copy, Debug)]
+struct Coded<'a> {
+    coding: Coding,
+    /// The child level's records, where sequential children of an interior
+    /// child level are found by adding their siblings' sizes; `None` when
+    /// the child level is the leaf level (sequential leaf `base + j`).
+    next: Option<(&'a [u8], Coding)>,
 }
 
 impl<'a> Level<'a> {
-    /// The level `section` of the file whose bytes are `file`.
+    /// The level `section` of the 1.0 file whose bytes are `file`.
     pub(crate) fn new(file: &'a [u8], section: &dagfmt::LevelSection<'a>) -> Self {
         let width = u32::from(section.pointer_width);
         // The file from the section's offset on, where that is the section's
@@ -221,6 +249,143 @@ impl<'a> Level<'a> {
             file_offset: section.file_offset,
             width,
             pointer_mask: reference_mask(width),
+            address_shift: HEADER_BYTES.trailing_zeros(),
+            v2: None,
+        }
+    }
+
+    /// Level `this` of a 2.0 DAG (spec §23), whose child level is `next`
+    /// (`None` for the leaf level). Fails when a node level's widths are not
+    /// a valid coding or its items cannot all be addressed by the tracer's
+    /// 32-bit addresses.
+    pub(crate) fn new_v2(
+        this: &LevelView<'a>,
+        next: Option<&LevelView<'a>>,
+    ) -> Result<Self, dagfmt::FormatError> {
+        let coding = |v: &LevelView<'a>| -> Result<Coding, dagfmt::FormatError> {
+            if v.is_leaf || v.bytes.is_empty() {
+                // Leaves, or a node level without records (an empty DAG):
+                // nothing is decoded with it.
+                return Ok(Coding::default());
+            }
+            Coding::new(v.widths)
+        };
+        // Addresses are u32: byte offsets of records, indices of leaves.
+        let items = if this.is_leaf {
+            this.bytes.len() as u64 / u64::from(LEAF_BYTES)
+        } else {
+            this.bytes.len() as u64
+        };
+        if items > u64::from(u32::MAX) {
+            return Err(dagfmt::FormatError::new(
+                dagfmt::ErrorCode::LevelTooLarge,
+                0,
+                format!(
+                    "a 2.0 level of {} bytes is more than the tracer addresses (4 GiB of records)",
+                    this.bytes.len()
+                ),
+            ));
+        }
+        let v2 = if this.is_leaf {
+            None
+        } else {
+            let next = match next {
+                Some(n) if !n.is_leaf => Some((n.bytes, coding(n)?)),
+                _ => None,
+            };
+            Some(Coded {
+                coding: coding(this)?,
+                next,
+            })
+        };
+        Ok(Level {
+            bytes: this.bytes,
+            readable: this.bytes,
+            file_offset: 0,
+            width: 0,
+            pointer_mask: 0,
+            address_shift: 0,
+            v2,
+        })
+    }
+
+    /// Whether the level is a 2.0 node level.
+    #[inline(always)]
+    pub(crate) fn is_v2(&self) -> bool {
+        self.v2.is_some()
+    }
+
+    /// The byte offset in the level of the node at `address`.
+    #[inline(always)]
+    pub(crate) fn node_byte(&self, address: u32) -> usize {
+        (address as usize) << self.address_shift
+    }
+
+    /// [`Level::node_byte`] where the caller knows the format: `V2` for a
+    /// 2.0 node level, else 1.0 (the walk is compiled once for each, so
+    /// that 1.0's copy has no 2.0 tests).
+    #[inline(always)]
+    pub(crate) fn node_byte_in<const V2: bool>(&self, address: u32) -> usize {
+        if V2 {
+            address as usize
+        } else {
+            address as usize * HEADER_BYTES as usize
+        }
+    }
+
+    /// [`Level::header`] for the traversal: an out-of-range read records the
+    /// fault (the first one) and reads as 0, a node without children, which
+    /// ends that branch; the caller reports the fault when it is done. This
+    /// keeps `Result` plumbing out of the inner loop.
+    /// `V2`: whether the level is 2.0 (see [`Level::node_byte_in`]).
+    #[inline(always)]
+    pub(crate) fn header_or_fault<const V2: bool>(
+        &self,
+        level: u8,
+        word: u32,
+        fault: &mut Option<Fault>,
+    ) -> u32 {
+        let at = self.node_byte_in::<V2>(word);
+        match self.read_u32(at) {
+            Some(v) => v,
+            None => record(
+                fault,
+                Fault {
+                    level,
+                    at: at as u64,
+                    truncated: false,
+                },
+            ),
+        }
+    }
+
+    /// [`Level::child`] for the traversal (see [`Level::header_or_fault`]);
+    /// `V2`: whether the level is 2.0 (see [`Level::node_byte_in`]).
+    #[inline(always)]
+    pub(crate) fn child_or_fault<const V2: bool>(
+        &self,
+        level: u8,
+        word: u32,
+        mask: u8,
+        child: u32,
+        fault: &mut Option<Fault>,
+    ) -> ChildRef {
+        if V2 {
+            match self.child_v2(level, word, child) {
+                Ok(v) => v,
+                Err(f) => ChildRef {
+                    node: record(fault, f),
+                    reflection: 0,
+                },
+            }
+        } else {
+            match self.read_u32(self.reference_at(word, child_rank(mask, child))) {
+                Some(v) => ChildRef {
+                    node: v & self.pointer_mask,
+                    reflection: 0,
+                },
+                None => self.reference_near_end(level, word, child_rank(mask, child), fault),
+            }
         }
     }
 
@@ -241,7 +406,7 @@ impl<'a> Level<'a> {
     /// The header word of the node at `word`.
     #[inline(always)]
     pub(crate) fn header(&self, level: u8, word: u32) -> Result<u32, Fault> {
-        let at = word as usize * HEADER_BYTES as usize;
+        let at = self.node_byte(word);
         self.read_u32(at).ok_or(Fault {
             level,
             at: at as u64,
@@ -253,6 +418,10 @@ impl<'a> Level<'a> {
     /// the node at `word`.
     #[inline(always)]
     pub(crate) fn reference(&self, level: u8, word: u32, rank: u32) -> Result<ChildRef, Fault> {
+        if self.is_v2() {
+            let mask = child_mask(self.header(level, word)?);
+            return self.child_v2(level, word, nth_slot(mask, rank));
+        }
         let at = self.reference_at(word, rank);
         // Fast path: one 32-bit load, masked to the pointer width. The bytes
         // after the pointer belong to the same record's padding or to the next
@@ -285,26 +454,51 @@ impl<'a> Level<'a> {
         mask: u8,
         child: u32,
     ) -> Result<ChildRef, Fault> {
+        if self.is_v2() {
+            return self.child_v2(level, word, child);
+        }
         self.reference(level, word, child_rank(mask, child))
     }
 
-    /// [`Level::header`] for the traversal: an out-of-range read records the
-    /// fault (the first one) and reads as 0, a node without children, which
-    /// ends that branch; the caller reports the fault when it is done. This
-    /// keeps `Result` plumbing out of the inner loop.
-    #[inline(always)]
-    pub(crate) fn header_or_fault(&self, level: u8, word: u32, fault: &mut Option<Fault>) -> u32 {
-        match self.read_u32(word as usize * HEADER_BYTES as usize) {
-            Some(v) => v,
-            None => record(
-                fault,
-                Fault {
-                    level,
-                    at: u64::from(word) * u64::from(HEADER_BYTES),
-                    truncated: false,
-                },
-            ),
-        }
+    /// [`Level::child`] in a 2.0 level: the reference of physical slot
+    /// `slot` decoded by [`Coding`]; a sequential child's address is the
+    /// base reference's, plus (interior child level) the sizes of the
+    /// sequential siblings before it.
+    #[inline(never)]
+    fn child_v2(&self, level: u8, address: u32, slot: u32) -> Result<ChildRef, Fault> {
+        let Some(coded) = &self.v2 else {
+            return Ok(ChildRef::default());
+        };
+        let offset = u64::from(address);
+        let cut = Fault {
+            level,
+            at: offset,
+            truncated: true,
+        };
+        let codes = coded.coding.codes(self.bytes, offset).ok_or(cut)?;
+        let (target, reflection) = match coded.coding.child(self.bytes, offset, &codes, slot) {
+            None => return Err(cut),
+            Some(Child::Shared { target, reflection }) => (target, reflection),
+            Some(Child::Sequential { base, index }) => match coded.next {
+                None => (base.saturating_add(u64::from(index)), 0),
+                Some((next, coding)) => {
+                    let mut at = base;
+                    for _ in 0..index {
+                        let size = coding.record_size(next, at).ok_or(Fault {
+                            level: level + 1,
+                            at,
+                            truncated: true,
+                        })?;
+                        at += size;
+                    }
+                    (at, 0)
+                }
+            },
+        };
+        // A target past the 32-bit addresses is past the level too (see
+        // `Level::new_v2`): it reads as an address the next read rejects.
+        let node = u32::try_from(target).unwrap_or(u32::MAX);
+        Ok(ChildRef { node, reflection })
     }
 
     /// [`Level::reference`] for the traversal (see [`Level::header_or_fault`]):
@@ -317,6 +511,15 @@ impl<'a> Level<'a> {
         rank: u32,
         fault: &mut Option<Fault>,
     ) -> ChildRef {
+        if self.is_v2() {
+            return match self.reference(level, word, rank) {
+                Ok(v) => v,
+                Err(f) => ChildRef {
+                    node: record(fault, f),
+                    reflection: 0,
+                },
+            };
+        }
         match self.read_u32(self.reference_at(word, rank)) {
             Some(v) => ChildRef {
                 node: v & self.pointer_mask,
@@ -324,19 +527,6 @@ impl<'a> Level<'a> {
             },
             None => self.reference_near_end(level, word, rank, fault),
         }
-    }
-
-    /// [`Level::child`] for the traversal (see [`Level::header_or_fault`]).
-    #[inline(always)]
-    pub(crate) fn child_or_fault(
-        &self,
-        level: u8,
-        word: u32,
-        mask: u8,
-        child: u32,
-        fault: &mut Option<Fault>,
-    ) -> ChildRef {
-        self.reference_or_fault(level, word, child_rank(mask, child), fault)
     }
 
     /// The rare reference whose 32-bit load would cross the end of the section.
@@ -381,6 +571,50 @@ impl<'a> Level<'a> {
         }
     }
 }
+
+/// The physical slot of the `rank`-th child (from 0) of `mask`; 8 when
+/// `mask` has no more children.
+#[inline]
+fn nth_slot(mask: u8, rank: u32) -> u32 {
+    let mut m = mask;
+    for _ in 0..rank {
+        m &= m.wrapping_sub(1);
+    }
+    m.trailing_zeros()
+}
+
+/// The leaf mask `bits` of a leaf reached with accumulated reflection `r`
+/// as its logical brick: bit `b` is stored bit `b ^ (r | r << 3)` (spec
+/// §23.4). The identity for `r` = 0 (every 1.0 leaf).
+#[inline(always)]
+pub(crate) fn logical_leaf(bits: u64, r: u8) -> u64 {
+    if r == 0 {
+        bits
+    } else {
+        dagfmt::symmetry::reflect_leaf(bits, r)
+    }
+}
+
+/// `SIBLINGS_BEFORE[r][c]`: the physical slots `p` with `p ^ r < c`, the
+/// logical siblings before logical child `c` in a node reached with
+/// accumulated reflection `r` (spec §23.5). `(1 << c) - 1` for `r` = 0.
+pub(crate) static SIBLINGS_BEFORE: [[u8; 8]; 8] = {
+    let mut t = [[0u8; 8]; 8];
+    let mut r = 0;
+    while r < 8 {
+        let mut c = 0;
+        while c < 8 {
+            let mut q = 0;
+            while q < c {
+                t[r][c] |= 1 << (q ^ r);
+                q += 1;
+            }
+            c += 1;
+        }
+        r += 1;
+    }
+    t
+};
 
 /// The mask keeping the low `width` bytes (1 to 4) of a 32-bit load.
 #[inline]
@@ -548,7 +782,7 @@ mod tests {
                 assert_eq!(attribute(header), *attr);
                 assert_eq!(child_count(*mask) as usize, children.len());
                 let mut fault = None;
-                assert_eq!(level.header_or_fault(3, *word, &mut fault), header);
+                assert_eq!(level.header_or_fault::<false>(3, *word, &mut fault), header);
                 let slots = (0..8).filter(|c| mask >> c & 1 == 1);
                 for (rank, child) in slots.enumerate() {
                     let expected = ChildRef {
@@ -559,7 +793,7 @@ mod tests {
                     assert_eq!(level.child(3, *word, *mask, child).unwrap(), expected);
                     assert_eq!(level.reference(3, *word, rank as u32).unwrap(), expected);
                     assert_eq!(
-                        level.child_or_fault(3, *word, *mask, child, &mut fault),
+                        level.child_or_fault::<false>(3, *word, *mask, child, &mut fault),
                         expected
                     );
                 }
@@ -569,7 +803,7 @@ mod tests {
             let end = (bytes.len() / 4) as u32;
             assert!(level.header(3, end).is_err());
             let mut fault = None;
-            assert_eq!(level.header_or_fault(3, end, &mut fault), 0);
+            assert_eq!(level.header_or_fault::<false>(3, end, &mut fault), 0);
             let f = fault.expect("a fault");
             assert_eq!((f.level, f.at, f.truncated), (3, u64::from(end) * 4, false));
             let mut fault = None;
@@ -615,6 +849,73 @@ mod tests {
         assert_eq!(sub_brick_mask(0x8000_0000_0000_0000), 0x80);
         assert_eq!(sub_brick_mask(0x0000_0100_0000_ff00), 0b0010_0010);
         assert_eq!(sub_brick_mask(u64::MAX), 0xff);
+    }
+
+    /// Every reference of the 2.0 encoding of random DAGs read through
+    /// [`Level::child`] and [`Level::reference`] as dagfmt's decoder reads it
+    /// (`decode_node`, `child_address`), sequential children included.
+    #[test]
+    fn every_v2_reference_reads_as_dagfmt_decodes_it() {
+        let mut rng = Rng(0x2e2);
+        let (mut sequential, mut reflected) = (0, 0);
+        for round in 0..6 {
+            let depth = 4 + round % 3;
+            let side = 1u64 << depth;
+            let mut voxels: Vec<[u32; 3]> = (0..200 << round)
+                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
+                .collect();
+            // Mirror images in x: shared, reflected subtrees.
+            let mirrored: Vec<[u32; 3]> = voxels
+                .iter()
+                .map(|&[x, y, z]| [side as u32 - 1 - x, y, z])
+                .collect();
+            voxels.extend(mirrored);
+            let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
+                .expect("valid voxels")
+                .to_bytes();
+            let enc = dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap();
+            let views = enc.views();
+            for (l, view) in views.iter().enumerate().filter(|(_, v)| !v.is_leaf) {
+                let level = Level::new_v2(view, views.get(l + 1)).unwrap();
+                let next = views[l + 1];
+                let child_level = (!next.is_leaf).then_some((next.bytes, next.widths));
+                let mut at = 0u64;
+                while at < view.bytes.len() as u64 {
+                    let node = dagfmt::v2::decode_node(view.bytes, at, view.widths).unwrap();
+                    let word = at as u32;
+                    let header = level.header(l as u8, word).unwrap();
+                    assert_eq!(header, node.header);
+                    let mut rank = 0;
+                    for slot in 0..8u32 {
+                        let Some(child) = node.children[slot as usize] else {
+                            continue;
+                        };
+                        sequential += usize::from(matches!(child, Child::Sequential { .. }));
+                        let (target, r) = dagfmt::v2::child_address(child, child_level).unwrap();
+                        reflected += usize::from(r != 0);
+                        let expected = ChildRef {
+                            node: target as u32,
+                            reflection: r,
+                        };
+                        let mask = child_mask(header);
+                        assert_eq!(level.child(l as u8, word, mask, slot).unwrap(), expected);
+                        assert_eq!(level.reference(l as u8, word, rank).unwrap(), expected);
+                        let mut fault = None;
+                        assert_eq!(
+                            level.child_or_fault::<true>(l as u8, word, mask, slot, &mut fault),
+                            expected
+                        );
+                        assert!(fault.is_none());
+                        rank += 1;
+                    }
+                    at += u64::from(node.size);
+                }
+            }
+        }
+        assert!(
+            sequential > 0 && reflected > 0,
+            "{sequential} sequential, {reflected} reflected"
+        );
     }
 
     /// Every node and leaf of a random DAG read through this module and

@@ -723,6 +723,11 @@ impl Tracer<'_> {
     /// by one.
     #[inline(never)]
     pub(crate) fn trace_packet(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
+        if self.v2 {
+            // Packets decode 1.0 records only (a 2.0 tracer has `packets`
+            // off): its rays go to the lanes, which trace them one by one.
+            return false;
+        }
         #[cfg(target_arch = "x86_64")]
         if crate::cpu::available() {
             // SAFETY: checked.

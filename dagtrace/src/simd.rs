@@ -345,6 +345,11 @@ fn try_trace_lanes_with(
     hits: &mut [Hit],
     how: LaneChoice,
 ) -> Result<(), Abandon> {
+    if tracer.v2 {
+        // The lanes decode 1.0 records only: a 2.0 DAG (spec §23) goes to
+        // the scalar steps, which read it through `node::Level`.
+        return Err(Abandon);
+    }
     let sections = Sections::new(tracer).ok_or(Abandon)?;
     if how.wide && wide_available() {
         // SAFETY: `wide_available()` found the features.
@@ -486,7 +491,7 @@ where
                         let leaf = group.target[lane] as u32;
                         let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
                         let mut fault = None;
-                        let found = tracer.brick(&group.prepared[lane], leaf, at, &mut fault);
+                        let found = tracer.brick(&group.prepared[lane], leaf, 0, at, &mut fault);
                         if fault.is_some() {
                             return Err(Abandon);
                         }

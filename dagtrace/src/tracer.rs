@@ -339,7 +339,7 @@ mod tests {
             let brick_pos = pos + CHILD_STEPS[child] * 4.0;
             let leaf = (rng.next() % leaves as u64) as u32;
             let mut fault = None;
-            let expected = tracer.brick(&p, leaf, brick_pos, &mut fault);
+            let expected = tracer.brick(&p, leaf, 0, brick_pos, &mut fault);
             assert!(fault.is_none());
             let got = tracer.brick_in_node(&p, leaf, brick_pos, child, planes);
             assert_eq!(got, Ok(expected), "{ray:?} node {node:?} child {child}");

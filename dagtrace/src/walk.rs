@@ -80,8 +80,8 @@ use glam::{BVec3A, Vec3A, Vec3Swizzles};
 use rustc_hash::FxHashMap;
 
 use crate::node::{
-    Fault, Level, attribute, brick_cell_occupied, child_at, child_count, child_mask, child_rank,
-    sub_brick, sub_brick_mask, voxel_bit, voxels_below,
+    Fault, Level, SIBLINGS_BEFORE, attribute, brick_cell_occupied, child_at, child_count,
+    child_mask, logical_leaf, sub_brick, sub_brick_mask, voxel_bit, voxels_below,
 };
 use crate::tables::{CHAIN, CHILD_BITS, FIRST};
 use dagfmt::batch::{Hit, Ray};
@@ -174,17 +174,19 @@ pub enum TraceError {
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C)]
 pub(crate) struct Frame {
-    /// Word offset of the node in its level.
+    /// Address of the node in its level (word offset in 1.0, byte offset
+    /// in 2.0, see `node::Level`).
     pub(crate) word: u32,
     /// The node's child mask.
     pub(crate) mask: u8,
     /// Children the ray passes through that are still to be visited.
     pub(crate) remaining: u8,
-    /// The child (file index) being visited below this node, to step back to
-    /// this node's position when the visit ends.
+    /// The child (physical slot) being visited below this node, to step
+    /// back to this node's position when the visit ends.
     pub(crate) last: u8,
-    /// Explicit padding, so that a stack of frames is zeroed with a memset.
-    pub(crate) _pad: u8,
+    /// The node's accumulated reflection R (spec §23.4; 0 in 1.0): the
+    /// traversal sees it as a 1.0 node traced in octant `neg ^ R`.
+    pub(crate) reflection: u8,
 }
 
 const _: () = assert!(std::mem::size_of::<Frame>() == 8);
@@ -248,8 +250,10 @@ pub(crate) struct Walk {
     /// Mirrored grid position of that node's lower corner, and its edge.
     pub(crate) pos: Vec3A,
     pub(crate) size: f32,
-    /// The node word or leaf index to read next.
+    /// The node address or leaf index to read next.
     pub(crate) target: u32,
+    /// The accumulated reflection of `target` (spec §23.4; 0 in 1.0).
+    pub(crate) reflection: u8,
     /// Mirrored grid position of the brick to read next.
     pub(crate) brick_pos: Vec3A,
 }
@@ -402,6 +406,9 @@ pub struct Tracer<'a> {
     pub(crate) grid_scale: f64,
     /// Edge length in grid units of a cell of each level: 2^(D - level).
     pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
+    /// Whether the levels are format 2.0 (spec §23): traced by the scalar
+    /// steps only (the vector lanes and packets read 1.0 records).
+    pub(crate) v2: bool,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
     /// This tracer's number (shared by its clones, which read the same
@@ -432,12 +439,76 @@ impl<'a> Tracer<'a> {
     /// Makes a tracer for `dag`. Fails only when, for attribute kind 1, the
     /// nodes with saturated counts lead to a pointer outside their level.
     pub fn new(dag: &Dag<'a>) -> Result<Self, TraceError> {
-        let depth = dag.header().depth;
         let file = dag.bytes();
         let mut levels = [Level::default(); LEVEL_SLOTS];
         for (slot, section) in levels.iter_mut().zip(dag.levels()) {
             *slot = Level::new(file, section);
         }
+        let header = dag.header();
+        let dag_bytes = dag.levels().iter().map(|l| l.bytes.len()).sum::<usize>();
+        Self::from_parts(
+            levels,
+            header,
+            dag.is_empty(),
+            dag_bytes,
+            false,
+            dag.color_table(),
+        )
+    }
+
+    /// Makes a tracer for a format 2.0 DAG (spec §23) whose level sections
+    /// are `levels` (root first, the leaf level last, as
+    /// `dagfmt::v2::Encoded::views` or a 2.0 reader gives them), with the
+    /// header fields of `header` (depth, root cube, attribute kind; the rest
+    /// is not read) and colours `colors`. Answers are those of the 1.0 DAG
+    /// of the same voxels. Fails when the levels do not fit the depth or a
+    /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
+    /// offsets that errors of a malformed DAG report are inside the level
+    /// section named (the tracer does not know where the sections lie in a
+    /// file). Batches are traced by the scalar steps (the vector lanes and
+    /// packets read 1.0 records only): see dagtrace/BENCHMARKS.md.
+    pub fn from_v2_levels(
+        header: &dagfmt::Header,
+        levels: &[dagfmt::v2::LevelView<'a>],
+        colors: Option<ColorTable<'a>>,
+    ) -> Result<Self, TraceError> {
+        let malformed = |message: String| {
+            TraceError::Malformed(FormatError::new(ErrorCode::BadLevelSections, 0, message))
+        };
+        let depth = header.depth;
+        let shape_ok = (2..=21).contains(&depth)
+            && levels.len() == usize::from(depth) - 1
+            && levels
+                .iter()
+                .enumerate()
+                .all(|(i, l)| l.is_leaf == (i + 1 == levels.len()));
+        if !shape_ok {
+            return Err(malformed(format!(
+                "a depth-{depth} 2.0 DAG needs {} levels, the last one the leaves; {} given",
+                depth.saturating_sub(1),
+                levels.len()
+            )));
+        }
+        let mut slots = [Level::default(); LEVEL_SLOTS];
+        for (i, (slot, view)) in slots.iter_mut().zip(levels).enumerate() {
+            *slot = Level::new_v2(view, levels.get(i + 1))
+                .map_err(|e| TraceError::Malformed(e.at_level(i as u8)))?;
+        }
+        let empty = levels.last().is_none_or(|l| l.bytes.is_empty());
+        let dag_bytes = levels.iter().map(|l| l.bytes.len()).sum::<usize>();
+        Self::from_parts(slots, header, empty, dag_bytes, true, colors)
+    }
+
+    /// The rest of [`Tracer::new`] and [`Tracer::from_v2_levels`].
+    fn from_parts(
+        levels: [Level<'a>; LEVEL_SLOTS],
+        header: &dagfmt::Header,
+        empty: bool,
+        dag_bytes: usize,
+        v2: bool,
+        colors: Option<ColorTable<'a>>,
+    ) -> Result<Self, TraceError> {
+        let depth = header.depth;
         let mut cell_size = [0f32; MAX_STORED_LEVELS + 2];
         for (level, size) in cell_size
             .iter_mut()
@@ -446,25 +517,24 @@ impl<'a> Tracer<'a> {
         {
             *size = (1u32 << (u32::from(depth) - level as u32)) as f32;
         }
-        let header = dag.header();
-        let dag_bytes = dag.levels().iter().map(|l| l.bytes.len()).sum::<usize>();
         let mut tracer = Tracer {
             levels,
             depth,
             leaf_level: depth - 2,
-            empty: dag.is_empty(),
+            empty,
             attribute_kind: header.attribute_kind,
             root_min: header.root_min,
             grid_scale: (1u64 << depth) as f64 / header.root_size,
             cell_size,
+            v2,
             saturated: FxHashMap::default(),
             id: NEXT_TRACER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             compute_index: true,
-            packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
+            packets: dag_bytes <= PACKET_MAX_DAG_BYTES && !v2,
             small: dag_bytes <= SMALL_DAG_BYTES,
             gather_loads: Gathers::Auto.loads(),
             wide_lanes: Lanes::Auto.wide(),
-            colors: dag.color_table(),
+            colors,
             bounds_level: 0,
             bounds: [(Vec3A::ZERO, Vec3A::splat((1u32 << depth) as f32)); 8],
         };
@@ -503,8 +573,8 @@ impl<'a> Tracer<'a> {
     fn occupied_cells(&self, level: u8) -> Option<([u32; 3], [u32; 3])> {
         let mut lo = [u32::MAX; 3];
         let mut hi = [0u32; 3];
-        let mut pending = vec![(0u8, 0u32, [0u32; 3])];
-        while let Some((l, word, cell)) = pending.pop() {
+        let mut pending = vec![(0u8, 0u32, 0u8, [0u32; 3])];
+        while let Some((l, word, r, cell)) = pending.pop() {
             if l == level {
                 for i in 0..3 {
                     lo[i] = lo[i].min(cell[i]);
@@ -514,12 +584,15 @@ impl<'a> Tracer<'a> {
             }
             let section = &self.levels[usize::from(l) & LEVEL_INDEX];
             let mask = child_mask(section.header(l, word).ok()?);
-            for child in 0..8u32 {
-                if mask >> child & 1 == 1 {
-                    let pointer = section.child(l, word, mask, child).ok()?.node;
+            for slot in 0..8u32 {
+                if mask >> slot & 1 == 1 {
+                    let reference = section.child(l, word, mask, slot).ok()?;
+                    // The logical child of physical slot `slot` (spec §23.4).
+                    let child = slot ^ u32::from(r);
                     pending.push((
                         l + 1,
-                        pointer,
+                        reference.node,
+                        r ^ reference.reflection,
                         [0, 1, 2].map(|i| cell[i] * 2 + (child >> i & 1)),
                     ));
                 }
@@ -841,11 +914,12 @@ impl<'a> Tracer<'a> {
                                     .map_err(|f| self.fault_error(f))?
                                 {
                                     None => None,
-                                    Some(found) => Some(
+                                    Some((found, reflection)) => Some(logical_leaf(
                                         self.levels[usize::from(self.leaf_level)]
                                             .leaf(self.leaf_level, found.leaf)
                                             .map_err(|f| self.fault_error(f))?,
-                                    ),
+                                        reflection,
+                                    )),
                                 };
                                 leaves[cached] = (key.0, key.1, key.2, bits);
                                 cached += 1;
@@ -877,8 +951,10 @@ impl<'a> Tracer<'a> {
         if level == 0 {
             return Ok(Some(Found { cell, leaf: 0 }));
         }
-        self.lookup(cell, level, stack)
-            .map_err(|f| self.fault_error(f))
+        Ok(self
+            .lookup(cell, level, stack)
+            .map_err(|f| self.fault_error(f))?
+            .map(|(found, _)| found))
     }
 
     /// Whether hits carry an attribute index (which needs the path to the cell).
@@ -1107,7 +1183,7 @@ impl<'a> Tracer<'a> {
         }
         if leaf_level == 0 {
             return Err(self
-                .brick(&q, 0, Vec3A::ZERO, fault)
+                .brick(&q, 0, 0, Vec3A::ZERO, fault)
                 .map(|(cell, level)| (cell, level, 0)));
         }
         Ok(Walk {
@@ -1122,6 +1198,7 @@ impl<'a> Tracer<'a> {
             pos: Vec3A::ZERO,
             size: root_size,
             target: 0,
+            reflection: 0,
             brick_pos: Vec3A::ZERO,
         })
     }
@@ -1156,19 +1233,41 @@ impl<'a> Tracer<'a> {
         stack: &mut Stack,
         fault: &mut Option<Fault>,
     ) -> Option<Option<Cell>> {
+        if self.v2 {
+            self.resume_in::<true>(walk, stack, fault)
+        } else {
+            self.resume_in::<false>(walk, stack, fault)
+        }
+    }
+
+    /// [`Tracer::resume`] compiled for one format: `V2` for 2.0, else 1.0,
+    /// whose copy carries no reflection (R = 0 everywhere) and reads nodes
+    /// without 2.0 tests.
+    #[inline(always)]
+    fn resume_in<const V2: bool>(
+        &self,
+        walk: &mut Walk,
+        stack: &mut Stack,
+        fault: &mut Option<Fault>,
+    ) -> Option<Option<Cell>> {
         let q = &walk.q;
-        let neg = q.neg & 7;
+        // The ray's octant; a node reached with accumulated reflection R is
+        // traced as a 1.0 node in octant `ray_neg ^ R` (spec §23.4): `neg`
+        // and `reflection` are the node's.
+        let ray_neg = q.neg & 7;
         let (origin, inv_dir) = (q.origin, q.inv_dir);
         let stop = walk.stop;
         let mut level = walk.level;
         let mut pos = walk.pos;
         let mut size = walk.size;
-        let (mut word, mut mask, mut remaining);
+        let (mut word, mut mask, mut remaining, mut reflection);
         if walk.pending == Pending::Node {
             // Visit the node: the children the ray passes through.
             word = walk.target;
-            let header =
-                self.levels[usize::from(level) & LEVEL_INDEX].header_or_fault(level, word, fault);
+            reflection = if V2 { walk.reflection } else { 0 };
+            let neg = ray_neg ^ usize::from(reflection & 7);
+            let header = self.levels[usize::from(level) & LEVEL_INDEX]
+                .header_or_fault::<V2>(level, word, fault);
             let t_lo = (pos - origin) * inv_dir;
             let t_mid = (pos + Vec3A::splat(size * 0.5) - origin) * inv_dir;
             let t_hi = (pos + Vec3A::splat(size) - origin) * inv_dir;
@@ -1184,13 +1283,17 @@ impl<'a> Tracer<'a> {
             // A brick below the node the walk stands on, whose frame is on
             // the stack.
             let leaf = walk.target;
-            if let Some((cell, cell_level)) = self.brick(q, leaf, walk.brick_pos, fault) {
+            let leaf_reflection = if V2 { walk.reflection } else { 0 };
+            if let Some((cell, cell_level)) =
+                self.brick(q, leaf, leaf_reflection, walk.brick_pos, fault)
+            {
                 return Some(Some((cell, cell_level, leaf)));
             }
             let frame = stack[usize::from(level) & LEVEL_INDEX];
             word = frame.word;
             mask = frame.mask;
             remaining = frame.remaining;
+            reflection = if V2 { frame.reflection } else { 0 };
         }
         while remaining == 0 {
             if level == walk.top {
@@ -1199,18 +1302,22 @@ impl<'a> Tracer<'a> {
             // Back to the parent: undo the step into this node.
             level -= 1;
             let parent = stack[usize::from(level) & LEVEL_INDEX];
-            pos -= CHILD_STEPS[(usize::from(parent.last) ^ neg) & 7] * size;
+            let parent_reflection = if V2 { parent.reflection } else { 0 };
+            let parent_neg = ray_neg ^ usize::from(parent_reflection);
+            pos -= CHILD_STEPS[(usize::from(parent.last) ^ parent_neg) & 7] * size;
             size *= 2.0;
             word = parent.word;
             mask = parent.mask;
             remaining = parent.remaining;
+            reflection = parent_reflection;
         }
+        let neg = (ray_neg ^ usize::from(reflection)) & 7;
         let child = FIRST[neg][usize::from(remaining)];
         remaining &= !(1 << child);
         let l = usize::from(level) & LEVEL_INDEX;
-        let pointer = self.levels[l]
-            .child_or_fault(level, word, mask, u32::from(child), fault)
-            .node;
+        let reference =
+            self.levels[l].child_or_fault::<V2>(level, word, mask, u32::from(child), fault);
+        let pointer = reference.node;
         let half = size * 0.5;
         let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
         stack[l] = Frame {
@@ -1218,7 +1325,12 @@ impl<'a> Tracer<'a> {
             mask,
             remaining,
             last: child,
-            _pad: 0,
+            reflection,
+        };
+        let child_reflection = if V2 {
+            (reflection ^ reference.reflection) & 7
+        } else {
+            0
         };
         let child_level = level + 1;
         if child_level == stop {
@@ -1230,18 +1342,18 @@ impl<'a> Tracer<'a> {
             prefetch(self.levels[leaf_level].bytes, pointer as usize * 8);
             walk.pending = Pending::Brick;
             walk.target = pointer;
+            walk.reflection = child_reflection;
             walk.brick_pos = child_pos;
             walk.level = level;
             walk.pos = pos;
             walk.size = size;
             return None;
         }
-        prefetch(
-            self.levels[usize::from(child_level) & LEVEL_INDEX].bytes,
-            pointer as usize * 4,
-        );
+        let next = &self.levels[usize::from(child_level) & LEVEL_INDEX];
+        prefetch(next.bytes, next.node_byte_in::<V2>(pointer));
         walk.pending = Pending::Node;
         walk.target = pointer;
+        walk.reflection = child_reflection;
         walk.level = child_level;
         walk.pos = child_pos;
         walk.size = half;
@@ -1309,6 +1421,7 @@ impl<'a> Tracer<'a> {
         &self,
         p: &Prepared,
         leaf: u32,
+        reflection: u8,
         pos: Vec3A,
         fault: &mut Option<Fault>,
     ) -> Option<(Vec3A, u8)> {
@@ -1317,7 +1430,10 @@ impl<'a> Tracer<'a> {
             leaf,
             fault,
         );
-        let neg = p.neg;
+        // The sub-brick byte and the voxel bit in it are each indexed by
+        // three axis bits: a leaf reached with R is traced in octant
+        // `neg ^ R` on both (spec §23.4).
+        let neg = (p.neg ^ usize::from(reflection)) & 7;
         let t0 = (pos - p.origin) * p.inv_dir;
         let t1 = (pos + Vec3A::splat(1.0) - p.origin) * p.inv_dir;
         let t2 = (pos + Vec3A::splat(2.0) - p.origin) * p.inv_dir;
@@ -1430,31 +1546,42 @@ impl<'a> Tracer<'a> {
 
     /// Follows the path of `cell` (at `level`) from the root, filling `stack`
     /// with the interior nodes on the way. `None` when the cell is empty.
-    fn lookup(&self, cell: [u32; 3], level: u8, stack: &mut Stack) -> Result<Option<Found>, Fault> {
+    /// With the cell, the accumulated reflection of the node or leaf
+    /// reached (spec §23.4).
+    fn lookup(
+        &self,
+        cell: [u32; 3],
+        level: u8,
+        stack: &mut Stack,
+    ) -> Result<Option<(Found, u8)>, Fault> {
         let mut word = 0u32;
+        let mut reflection = 0u8;
         for l in 0..level.min(self.leaf_level) {
             let mask = child_mask(self.levels[usize::from(l)].header(l, word)?);
-            let child = child_at(cell, level - 1 - l);
+            // The logical child's physical slot.
+            let slot = child_at(cell, level - 1 - l) ^ u32::from(reflection);
             stack[usize::from(l)] = Frame {
                 word,
                 mask,
                 remaining: 0,
-                last: child as u8,
-                _pad: 0,
+                last: slot as u8,
+                reflection,
             };
-            if mask >> child & 1 == 0 {
+            if mask >> slot & 1 == 0 {
                 return Ok(None);
             }
-            word = self.levels[usize::from(l)]
-                .child(l, word, mask, child)?
-                .node;
+            let reference = self.levels[usize::from(l)].child(l, word, mask, slot)?;
+            word = reference.node;
+            reflection ^= reference.reflection;
         }
+        let found = Found { cell, leaf: word };
         if level <= self.leaf_level {
-            return Ok(Some(Found { cell, leaf: word }));
+            return Ok(Some((found, reflection)));
         }
         let bits = self.levels[usize::from(self.leaf_level)].leaf(self.leaf_level, word)?;
-        let occupied = brick_cell_occupied(bits, cell, level == self.depth);
-        Ok(occupied.then_some(Found { cell, leaf: word }))
+        let occupied =
+            brick_cell_occupied(logical_leaf(bits, reflection), cell, level == self.depth);
+        Ok(occupied.then_some((found, reflection)))
     }
 
     /// The dense index of the first voxel of the found cell, from the path in
@@ -1505,7 +1632,11 @@ impl<'a> Tracer<'a> {
             let frame = stack[usize::from(l) & LEVEL_INDEX];
             let section = &self.levels[usize::from(l) & LEVEL_INDEX];
             let child = child_at(found.cell, level - 1 - l);
-            let rank = child_rank(frame.mask, child);
+            // The logical siblings before the child, as physical slots
+            // (spec §23.5; a prefix of the mask in 1.0).
+            let before =
+                SIBLINGS_BEFORE[usize::from(frame.reflection & 7)][child as usize & 7] & frame.mask;
+            let rank = child_count(before);
             let children = child_count(frame.mask);
             // The earlier siblings' counts or, where that reads fewer, the
             // node's own count (its header is on the path, read already)
@@ -1513,9 +1644,23 @@ impl<'a> Tracer<'a> {
             // number in a valid file, whose counts add up.
             let earlier = rank <= children - rank;
             let mut sum = 0u64;
-            for r in if earlier { 0..rank } else { rank..children } {
-                let pointer = section.reference(l, frame.word, r)?.node;
-                sum = sum.saturating_add(self.count(l + 1, pointer)?);
+            if section.is_v2() {
+                let mut slots = if earlier {
+                    before
+                } else {
+                    frame.mask & !before
+                };
+                while slots != 0 {
+                    let slot = slots.trailing_zeros();
+                    slots &= slots - 1;
+                    let pointer = section.child(l, frame.word, frame.mask, slot)?.node;
+                    sum = sum.saturating_add(self.count(l + 1, pointer)?);
+                }
+            } else {
+                for r in if earlier { 0..rank } else { rank..children } {
+                    let pointer = section.reference(l, frame.word, r)?.node;
+                    sum = sum.saturating_add(self.count(l + 1, pointer)?);
+                }
             }
             if !earlier {
                 sum = self.count(l, frame.word)?.saturating_sub(sum);
@@ -1524,8 +1669,18 @@ impl<'a> Tracer<'a> {
             memo.sums[usize::from(l + 1) & LEVEL_INDEX] = index;
         }
         if level > self.leaf_level {
-            let bits =
+            let mut bits =
                 self.levels[usize::from(self.leaf_level)].leaf(self.leaf_level, found.leaf)?;
+            if self.v2 && self.leaf_level > 0 {
+                // The leaf's accumulated reflection: its parent's, on the
+                // path, and that of the reference to it.
+                let l = self.leaf_level - 1;
+                let frame = stack[usize::from(l) & LEVEL_INDEX];
+                let slot = child_at(found.cell, level - 1 - l) ^ u32::from(frame.reflection);
+                let reference = self.levels[usize::from(l) & LEVEL_INDEX]
+                    .child(l, frame.word, frame.mask, slot)?;
+                bits = logical_leaf(bits, frame.reflection ^ reference.reflection);
+            }
             let c = found.cell;
             let below = if level == self.depth {
                 voxel_bit(c)
@@ -1591,8 +1746,9 @@ impl<'a> Tracer<'a> {
             return Ok(n);
         }
         let mut total = 0u64;
-        for rank in 0..child_count(child_mask(header)) {
-            let pointer = section.reference(level, word, rank)?.node;
+        let mask = child_mask(header);
+        for slot in (0..8).filter(|s| mask >> s & 1 != 0) {
+            let pointer = section.child(level, word, mask, slot)?.node;
             total = total.saturating_add(self.count_saturated(level + 1, pointer, memo)?);
         }
         memo.insert((level, word), total);

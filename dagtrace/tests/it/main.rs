@@ -4,6 +4,7 @@ mod bad_input;
 mod cases;
 mod cli;
 mod common;
+mod format2;
 #[cfg(feature = "gpu")]
 mod gpu;
 mod lit;

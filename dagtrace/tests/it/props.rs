@@ -263,7 +263,7 @@ fn generic_rays_hit_the_exact_first_cell() {
 
 /// Hollow balls at a depth where the batch API traces coherent rays as
 /// packets (depth 9 and more), with the balls' centres in grid units.
-fn ball_scene(depth: u8, rng: &mut Rng) -> (Vec<[u32; 3]>, Vec<[f64; 3]>) {
+pub fn ball_scene(depth: u8, rng: &mut Rng) -> (Vec<[u32; 3]>, Vec<[f64; 3]>) {
     let n = f64::from(1u32 << depth);
     let mut voxels = Vec::new();
     let mut centres = Vec::new();

@@ -144,11 +144,11 @@ pub fn validate_with(bytes: &[u8], options: &ValidateOptions) -> ValidationRepor
 
 /// Validation stopped because the error limit was reached.
 #[derive(Debug)]
-struct Stop;
+pub(crate) struct Stop;
 
 /// The findings so far.
-struct Findings {
-    errors: Vec<FormatError>,
+pub(crate) struct Findings {
+    pub(crate) errors: Vec<FormatError>,
     max: usize,
     truncated: bool,
 }
@@ -156,7 +156,7 @@ struct Findings {
 impl Findings {
     #[cold]
     #[inline(never)]
-    fn report(&mut self, e: FormatError) -> Result<(), Stop> {
+    pub(crate) fn report(&mut self, e: FormatError) -> Result<(), Stop> {
         if self.errors.len() >= self.max {
             self.truncated = true;
             return Err(Stop);
@@ -186,6 +186,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
     let checks = LayoutChecks {
         thorough: true,
         max_file_size: options.max_file_size,
+        accept_v2: true,
     };
     let mut stopped = false;
     let layout = reader::check_layout(bytes, checks, &mut |e| match f.report(e) {
@@ -226,7 +227,11 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
                     .ok()
             })
             .flatten();
-        let walked = check_levels(&layout, bytes, f);
+        let walked = if layout.header.version_major == layout::VERSION_MAJOR_2 {
+            crate::validate2::check_levels(&layout, bytes, f)
+        } else {
+            check_levels(&layout, bytes, f)
+        };
         let computed = match worker {
             Some(worker) => worker
                 .join()

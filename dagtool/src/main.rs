@@ -143,8 +143,10 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Show the header, a per-level table, totals, and the size of the same DAG
-    /// with 32-bit pointers and as a sparse voxel octree.
+    /// Show the header, a per-level table, totals, and the size of the same
+    /// voxels with 32-bit pointers, as a sparse voxel octree, in the 1.0 layout
+    /// and in the SSVDAG encoding (a merge under reflections: time and memory
+    /// linear in the DAG). Reads format 1.0 and 2.0 files.
     Info {
         /// The .vdag (or .vdag.zst) file.
         file: PathBuf,

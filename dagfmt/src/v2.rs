@@ -1,4 +1,4 @@
-//! Format 2.0 level encoding (spec/VDAG.md §23, draft): the encoder of the
+//! Format 2.0 level encoding (spec/VDAG.md §23): the encoder of the
 //! level sections from a 1.0 DAG, and [`decode_node`], the one decoder of a
 //! 2.0 node record and its references.
 //!

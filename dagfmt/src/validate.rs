@@ -28,7 +28,9 @@
 //!    exact subtree voxel counts computed on the way up) and, once a level's
 //!    parent has been walked, records nobody points to (E047).
 //! 4. The header's voxel count against the root's subtree count (E062).
-//! 5. A packed colour section's directory and blocks (E082 – E087), unless
+//! 5. A format 2.0 file (spec §23.10) replaces steps 2 – 4 by the walk of
+//!    `validate2` (E070 – E079 and the 1.0 rules that still apply).
+//! 6. A packed colour section's directory and blocks (E082 – E087), unless
 //!    its entry or trailer is wrong: after the first error in the directory,
 //!    the blocks are not checked; after the first error in a block, the rest
 //!    of that block is not checked.

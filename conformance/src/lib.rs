@@ -9,7 +9,7 @@
 //! - [`bless`]: writing the committed case files, reproducibly;
 //! - [`suite`]: running the cases against in-process or external tracers and
 //!   validators;
-//! - [`model`], [`mesh`], [`rng`]: file surgery, procedural meshes and a
+//! - [`model`], [`model2`] (format 2.0), [`mesh`], [`rng`]: file surgery, procedural meshes and a
 //!   fixed random stream for the generators.
 #![deny(missing_docs)]
 
@@ -19,6 +19,7 @@ pub mod judge;
 pub mod malformed;
 pub mod mesh;
 pub mod model;
+pub mod model2;
 pub mod oracle;
 pub mod rng;
 pub mod scenes;

@@ -17,6 +17,7 @@ use crate::model::{
     self, DagModel, EncodeOptions, JoinOptions, Placement, RawFile, RawSection, entry, entry_field,
     put_u16, put_u32, put_u64,
 };
+use crate::model2::{self, ChildRef, Layout2Options, Model2};
 
 /// One validator case.
 #[derive(Clone, Debug)]
@@ -266,8 +267,8 @@ pub fn validate_cases() -> Vec<ValidateCase> {
     bad(
         ErrorCode::UnsupportedVersion,
         "",
-        "major version 2",
-        edit(&base, |b| put_u16(b, 8, 2)),
+        "major version 3",
+        edit(&base, |b| put_u16(b, 8, 3)),
     );
     bad(
         ErrorCode::UnknownRequiredFeature,
@@ -891,6 +892,212 @@ pub fn validate_cases() -> Vec<ValidateCase> {
         }),
     );
 
+    // ---- Format 2.0 (spec §23.10), from the base volume upgraded.
+    let base2 = dagfmt::v2file::upgrade(&dagfmt::Dag::open(&base).expect("base")).expect("2.0");
+    let m2 = Model2::decode(&base2).expect("base 2.0 decodes");
+    assert_eq!(
+        m2.encode(),
+        base2,
+        "the 2.0 model lays the base file out as the encoder"
+    );
+    let leaf2 = m2.levels.len();
+    bad(
+        ErrorCode::BadWidths,
+        "",
+        "2.0: level 1's widths are w1 > w2",
+        edit(&base2, |b| {
+            let at = model2::entry_of(1);
+            b[at] = b[at + 1] + 1;
+        }),
+    );
+    bad(
+        ErrorCode::BadWidths,
+        "leaf",
+        "2.0: byte 6 of the leaf level's entry is 1",
+        edit(&base2, |b| b[model2::entry_of(leaf2) + 1] = 1),
+    );
+    bad(
+        ErrorCode::TruncatedRecord2,
+        "",
+        "2.0: level 1 ends with one byte of a record",
+        {
+            let mut r = RawFile::split(&base2).expect("splits");
+            r.sections[1].bytes.push(0x01);
+            r.join(&JoinOptions::default())
+        },
+    );
+    bad(
+        ErrorCode::NonzeroBitPadding,
+        "",
+        "2.0: the last bit of a record of level 1 whose references end inside its last byte is set",
+        {
+            let dag = dagfmt::Dag2::open(&base2).expect("2.0");
+            let n = dag.levels()[1].item_count as usize;
+            let (index, (at, bits)) = (0..n)
+                .map(|i| (i, Model2::record(&base2, 1, i)))
+                .find(|(_, (_, bits))| bits % 8 != 0)
+                .expect("a record with padding bits");
+            let _ = index;
+            let size = 4 + bits.div_ceil(8) as usize;
+            edit(&base2, |b| b[at + size - 1] |= 0x80)
+        },
+    );
+    bad(
+        ErrorCode::ReferenceOutOfRange2,
+        "",
+        "2.0: a shared reference of the deepest node level names a leaf past the leaf level",
+        {
+            let mut m = m2.clone();
+            let last = leaf2 - 1;
+            let n = m.leaves.len();
+            'found: for rec in &mut m.levels[last] {
+                for c in rec.children.iter_mut().flatten() {
+                    if let ChildRef::Shared { item, .. } = c {
+                        *item = n + 5;
+                        break 'found;
+                    }
+                }
+            }
+            m.encode()
+        },
+    );
+    bad(
+        ErrorCode::WidthNotMinimal,
+        "level",
+        "2.0: level 1's widest width is one more than its references need",
+        {
+            let dag = dagfmt::Dag2::open(&base2).expect("2.0");
+            let mut w = dag.levels()[1].widths;
+            w[2] += 1;
+            m2.encode_with(&Layout2Options {
+                widths: vec![(1, w)],
+                ..Default::default()
+            })
+        },
+    );
+    bad(
+        ErrorCode::WidthNotMinimal,
+        "reference",
+        "2.0: the root's first reference uses code 3 where a narrower width holds it",
+        m2.encode_with(&Layout2Options {
+            widen: Some((0, 0, 0)),
+            ..Default::default()
+        }),
+    );
+    // A shared leaf named at least four times: split into two copies.
+    let naming = m2.naming(leaf2 - 1);
+    bad(
+        ErrorCode::DuplicateClass,
+        "",
+        "2.0: a leaf named by four or more references is stored twice, each copy named twice or more",
+        {
+            let mut m = m2.clone();
+            let item = naming
+                .iter()
+                .position(|&(s, _)| s >= 4)
+                .expect("a leaf named 4 times");
+            let copy = m.leaves.len();
+            m.leaves.push(m.leaves[item]);
+            let mut moved = 0;
+            for rec in &mut m.levels[leaf2 - 1] {
+                for c in rec.children.iter_mut().flatten() {
+                    if let ChildRef::Shared { item: i, .. } = c
+                        && *i == item
+                        && moved < 2
+                    {
+                        *i = copy;
+                        moved += 1;
+                    }
+                }
+            }
+            m.encode()
+        },
+    );
+    bad(
+        ErrorCode::NotCanonical,
+        "",
+        "2.0: a shared leaf is stored mirrored in x, and every reference to it carries the mirror",
+        {
+            let mut m = m2.clone();
+            let item = (0..m.leaves.len())
+                .find(|&i| {
+                    naming[i].0 >= 2
+                        && dagfmt::symmetry::reflect_leaf(m.leaves[i], 1) != m.leaves[i]
+                })
+                .expect("an asymmetric shared leaf");
+            m.leaves[item] = dagfmt::symmetry::reflect_leaf(m.leaves[item], 1);
+            for rec in &mut m.levels[leaf2 - 1] {
+                for c in rec.children.iter_mut().flatten() {
+                    if let ChildRef::Shared { item: i, r } = c
+                        && *i == item
+                    {
+                        *r ^= 1;
+                    }
+                }
+            }
+            m.encode()
+        },
+    );
+    bad(
+        ErrorCode::BadLevelOrder,
+        "",
+        "2.0: the first two shared leaves, named by different numbers of references, are swapped",
+        {
+            let mut m = m2.clone();
+            let a = 0;
+            let b = (1..m.leaves.len())
+                .find(|&i| naming[i].0 >= 2 && naming[i].0 != naming[a].0)
+                .expect("two shared leaves with different counts");
+            m.leaves.swap(a, b);
+            for rec in &mut m.levels[leaf2 - 1] {
+                for c in rec.children.iter_mut().flatten() {
+                    if let ChildRef::Shared { item: i, .. } = c {
+                        if *i == a {
+                            *i = b;
+                        } else if *i == b {
+                            *i = a;
+                        }
+                    }
+                }
+            }
+            m.encode()
+        },
+    );
+    bad(
+        ErrorCode::BadSharing,
+        "",
+        "2.0: the last sequential child of a record of the deepest node level is named by a shared reference instead (one reference)",
+        {
+            let mut m = m2.clone();
+            'found: for rec in &mut m.levels[leaf2 - 1] {
+                if let Some(c) = rec
+                    .children
+                    .iter_mut()
+                    .rev()
+                    .flatten()
+                    .find(|c| matches!(c, ChildRef::Sequential { .. }))
+                {
+                    let ChildRef::Sequential { item } = *c else {
+                        unreachable!()
+                    };
+                    *c = ChildRef::Shared { item, r: 0 };
+                    break 'found;
+                }
+            }
+            m.encode()
+        },
+    );
+    bad(
+        ErrorCode::ItemCountMismatch2,
+        "",
+        "2.0: level 1 declares one record more than it holds",
+        edit(&base2, |b| {
+            let at = entry_field(1, entry::ITEM_COUNT);
+            let n = model::get_u64(b, at);
+            put_u64(b, at, n + 1);
+        }),
+    );
+
     // ---- Valid files that exercise the lenient parts of the format.
     let mut good = vec![
         case(
@@ -912,6 +1119,38 @@ pub fn validate_cases() -> Vec<ValidateCase> {
             None,
         ),
     ];
+    good.push(case(
+        "valid-v2",
+        "the base file as format 2.0 (dagtool upgrade)",
+        base2.clone(),
+        None,
+    ));
+    good.push(case(
+        "valid-v2-kind0",
+        "the base volume with attribute kind 0, as format 2.0",
+        dagfmt::v2file::upgrade(&dagfmt::Dag::open(&base0).expect("kind 0")).expect("2.0"),
+        None,
+    ));
+    good.push(case(
+        "valid-v2-colors",
+        "the base file with a voxel colour section, as format 2.0",
+        dagfmt::v2file::upgrade(&dagfmt::Dag::open(&colored).expect("colours")).expect("2.0"),
+        None,
+    ));
+    good.push(case(
+        "valid-v2-empty",
+        "an empty depth-5 volume as format 2.0",
+        dagfmt::v2file::upgrade(
+            &dagfmt::Dag::open(
+                &DagBuilder::from_voxels(5, AttributeKind::VoxelCount, [])
+                    .expect("empty")
+                    .to_bytes(),
+            )
+            .expect("empty"),
+        )
+        .expect("2.0"),
+        None,
+    ));
     good.push(case(
         "valid-packed-colors",
         "the base file with a lossless PACKED_COLORS section: a palette block and a direct block",

@@ -313,7 +313,7 @@ pub struct RawFile {
 impl RawFile {
     /// Splits a file the reader accepts.
     pub fn split(bytes: &[u8]) -> Result<RawFile, FormatError> {
-        let dag = Dag::open(bytes)?;
+        let dag = dagfmt::AnyDag::open(bytes)?;
         let header: [u8; HEADER_SIZE] = bytes[..HEADER_SIZE].try_into().expect("header");
         let sections = dag
             .sections()

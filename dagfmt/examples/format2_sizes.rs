@@ -11,8 +11,8 @@
 //! Columns (fractions of the classic layout; candidate sizes add the 128-byte
 //! header, the section table and at most 7 bytes of padding per level):
 //! - `1.0`: the level sections of the 1.0 file, with header and table;
-//! - `SSVDAG`: the SSVDAG encoding of the voxels merged under the 8
-//!   reflections, level data only: a 16-bit header (2 bits per child: none,
+//! - `SSVDAG`: [`dagfmt::stats::ssvdag_bytes`], the SSVDAG encoding of the
+//!   voxels merged under the 8 reflections, level data only: a 16-bit header (2 bits per child: none,
 //!   16-bit or 32-bit reference), references of 16 bits (13 address bits +
 //!   3 reflection bits) when the target's address is below 2^13, else 32
 //!   bits; interior addresses count 16-bit words within the level, leaves are
@@ -55,7 +55,6 @@ use dagfmt::symmetry::{Group, SymDag, canonicalize};
 /// How references and records are coded.
 #[derive(Clone, Copy)]
 enum Scheme {
-    Ssvdag,
     Unaligned,
     Aligned,
     /// Bit-packed references with a 2-bit code choosing one of four widths
@@ -157,13 +156,6 @@ fn encoded_bytes(dag: &SymDag, scheme: Scheme, tbits: u32) -> u64 {
                     k += 1;
                     let a = addr[r.class as usize];
                     size += match scheme {
-                        Scheme::Ssvdag => {
-                            if a < 1 << 13 {
-                                2
-                            } else {
-                                4
-                            }
-                        }
                         Scheme::Unaligned | Scheme::Aligned => bytes_for(a << tbits),
                         Scheme::BitsPadded => {
                             let b = 64 - ((a << tbits) | 7).leading_zeros();
@@ -173,7 +165,6 @@ fn encoded_bytes(dag: &SymDag, scheme: Scheme, tbits: u32) -> u64 {
                 }
             }
             let (record, unit) = match scheme {
-                Scheme::Ssvdag => (2 + size, 2),
                 Scheme::Unaligned => (4 + k.div_ceil(4) + size, 1),
                 Scheme::Aligned => ((4 + k.div_ceil(4) + size).div_ceil(4) * 4, 4),
                 Scheme::BitsPadded => (4 + size.div_ceil(8), 1),
@@ -244,7 +235,8 @@ fn main() -> ExitCode {
         let secs = start.elapsed().as_secs_f64();
         let full = canonicalize(&dag, Group::Full, Group::Full)
             .expect("the file merged under reflections");
-        let ssvdag = encoded_bytes(&refl, Scheme::Ssvdag, 3);
+        // Shared with `dagtool info` (dagfmt::stats::format_sizes).
+        let ssvdag = dagfmt::stats::ssvdag_bytes(&refl);
         let u2 = encoded_bytes(&refl, Scheme::Unaligned, 3) + overhead;
         let a2 = encoded_bytes(&refl, Scheme::Aligned, 3) + overhead;
         let bits = encoded_bytes(&refl, Scheme::BitsPadded, 3) + overhead;

@@ -144,6 +144,9 @@ pub struct FileHeader {
 pub struct FileLayout {
     header: FileHeader,
     sections: Vec<SectionInfo>,
+    /// Format 2.0 (§23): each node level's reference widths, stored in
+    /// bytes 5..8 of its entry; `None` for a 1.0 file.
+    widths2: Option<Vec<[u8; 3]>>,
     offsets: Vec<u64>,
     file_size: u64,
 }
@@ -156,7 +159,37 @@ impl FileLayout {
     /// Checks `sections` (the level sections root first, then the others)
     /// against the rules of the format and places them.
     pub fn new(header: FileHeader, sections: Vec<SectionInfo>) -> Result<Self, BuildError> {
-        check(&header, &sections)?;
+        Self::place(header, sections, None)
+    }
+
+    /// A format 2.0 file (spec §23): like [`FileLayout::new`], with the
+    /// reference widths of each node level (`widths[l]` for level `l`, root
+    /// first) in place of the 1.0 pointer widths; the `pointer_width` of the
+    /// node-level [`SectionInfo`]s is ignored.
+    pub fn new_v2(
+        header: FileHeader,
+        mut sections: Vec<SectionInfo>,
+        widths: Vec<[u8; 3]>,
+    ) -> Result<Self, BuildError> {
+        for (s, w) in sections.iter_mut().zip(&widths) {
+            if s.kind == SectionKind::NodeLevel {
+                s.pointer_width = w[0];
+            }
+        }
+        Self::place(header, sections, Some(widths))
+    }
+
+    /// The major format version the layout writes: 1 or 2.
+    pub fn version_major(&self) -> u16 {
+        if self.widths2.is_some() { 2 } else { 1 }
+    }
+
+    fn place(
+        header: FileHeader,
+        sections: Vec<SectionInfo>,
+        widths2: Option<Vec<[u8; 3]>>,
+    ) -> Result<Self, BuildError> {
+        check(&header, &sections, widths2.as_deref())?;
         let mut offsets = Vec::with_capacity(sections.len());
         let mut offset =
             layout::align_section((HEADER_SIZE + sections.len() * SECTION_ENTRY_SIZE) as u64);
@@ -174,6 +207,7 @@ impl FileLayout {
         Ok(FileLayout {
             header,
             sections,
+            widths2,
             offsets,
             file_size,
         })
@@ -204,18 +238,25 @@ impl FileLayout {
     pub fn with_section(&self, section: SectionInfo) -> Result<Self, BuildError> {
         let mut sections = self.sections.clone();
         sections.push(section);
-        FileLayout::new(self.header, sections)
+        FileLayout::place(self.header, sections, self.widths2.clone())
     }
 
     /// The header and the section table, as they start the file.
     fn header_and_table(&self) -> Vec<u8> {
         let mut table = Vec::with_capacity(self.sections.len() * SECTION_ENTRY_SIZE);
-        for (s, &offset) in self.sections.iter().zip(&self.offsets) {
+        for (i, (s, &offset)) in self.sections.iter().zip(&self.offsets).enumerate() {
+            // 2.0 node levels: w_2 and w_3 in bytes 6 and 7 (§23.2).
+            let upper = match &self.widths2 {
+                Some(w) if s.kind == SectionKind::NodeLevel => {
+                    u16::from_le_bytes([w[i][1], w[i][2]])
+                }
+                _ => 0,
+            };
             let entry = RawSectionEntry {
                 kind: s.kind.to_raw().to_le(),
                 level: s.level,
                 pointer_width: s.pointer_width,
-                reserved0: 0,
+                reserved0: upper.to_le(),
                 offset: offset.to_le(),
                 length: s.length.to_le(),
                 item_count: s.item_count.to_le(),
@@ -227,14 +268,18 @@ impl FileLayout {
         let h = &self.header;
         let mut raw = RawHeader {
             magic: MAGIC,
-            version_major: layout::VERSION_MAJOR.to_le(),
-            // The lowest version that has everything the file uses (§22.1).
-            version_minor: self
-                .sections
-                .iter()
-                .map(|s| s.version_minor)
-                .fold(layout::VERSION_MINOR, u16::max)
-                .to_le(),
+            version_major: self.version_major().to_le(),
+            // The lowest version that has everything the file uses (§22.1);
+            // 2.0 has every 1.x section kind.
+            version_minor: if self.widths2.is_none() {
+                self.sections
+                    .iter()
+                    .map(|s| s.version_minor)
+                    .fold(layout::VERSION_MINOR, u16::max)
+            } else {
+                layout::VERSION_MINOR
+            }
+            .to_le(),
             header_size: (HEADER_SIZE as u32).to_le(),
             required_features: 0,
             optional_features: 0,
@@ -300,7 +345,11 @@ impl FileLayout {
 
 /// The format's rules on the section table (spec §4.7, §5, §7, §9.3, §12.5,
 /// §16.1), as far as they can be checked without the section bytes.
-fn check(h: &FileHeader, sections: &[SectionInfo]) -> Result<(), BuildError> {
+fn check(
+    h: &FileHeader,
+    sections: &[SectionInfo],
+    widths2: Option<&[[u8; 3]]>,
+) -> Result<(), BuildError> {
     if !(MIN_DEPTH..=MAX_DEPTH).contains(&h.depth) {
         return Err(BuildError::DepthOutOfRange { depth: h.depth });
     }
@@ -351,6 +400,20 @@ fn check(h: &FileHeader, sections: &[SectionInfo]) -> Result<(), BuildError> {
                 return Err(BuildError::TooLarge {
                     what: format!("level {l} exceeds {MAX_NODE_LEVEL_BYTES} bytes"),
                 });
+            }
+            if let Some(widths2) = widths2 {
+                let w = widths2.get(l).copied().unwrap_or([0; 3]);
+                let ok = 1 <= w[0]
+                    && w[0] <= w[1]
+                    && w[1] <= w[2]
+                    && u32::from(w[2]) <= crate::v2::MAX_WIDTH;
+                if !ok || s.item_count > s.length / 5 {
+                    return Err(invalid(format!(
+                        "2.0 level {l} has widths {w:?} and {} records in {} bytes",
+                        s.item_count, s.length
+                    )));
+                }
+                continue;
             }
             if s.length % 4 != 0 || s.item_count > s.length / 8 {
                 return Err(invalid(format!(

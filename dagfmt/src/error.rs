@@ -44,7 +44,7 @@ error_codes! {
     TruncatedHeader = "E001", "truncated-header";
     /// The first eight bytes are not the `.vdag` magic.
     BadMagic = "E002", "bad-magic";
-    /// The major version is not 1.
+    /// The major version is not 1 or 2 (or, for a 1.0-only reader, not 1).
     UnsupportedVersion = "E003", "unsupported-version";
     /// A required feature bit this reader does not know is set.
     UnknownRequiredFeature = "E004", "unknown-required-feature";
@@ -112,6 +112,26 @@ error_codes! {
     HeaderVoxelCount = "E062", "header-voxel-count";
     /// A voxel colour section is present without attribute kind 1, twice, or with a wrong count.
     BadColorSection = "E063", "bad-color-section";
+    /// 2.0: a node level's reference widths are not 1 ≤ w1 ≤ w2 ≤ w3 ≤ 40, or bytes 5..8 of another section's entry are not zero.
+    BadWidths = "E070", "bad-widths";
+    /// 2.0: a node record runs past the end of its level.
+    TruncatedRecord2 = "E071", "truncated-record-2";
+    /// 2.0: the bits after a record's last reference are not zero.
+    NonzeroBitPadding = "E072", "nonzero-bit-padding";
+    /// 2.0: a reference's target is not a record start (or leaf), or a sequential run leaves its level.
+    ReferenceOutOfRange2 = "E073", "reference-out-of-range-2";
+    /// 2.0: a reference does not use the smallest width holding it, or the widths are not the level's minimising triple.
+    WidthNotMinimal = "E074", "width-not-minimal";
+    /// 2.0: two nodes (leaves) of a level are equal or mirror images of each other.
+    DuplicateClass = "E075", "duplicate-class";
+    /// 2.0: a shared node is not stored as its canonical member, or a reference does not carry the least reflection.
+    NotCanonical = "E076", "not-canonical";
+    /// 2.0: a level's nodes are not in the order of §23.7.
+    BadLevelOrder = "E077", "bad-level-order";
+    /// 2.0: a node is named once but shared, sequential but named other than once by one run, or not named.
+    BadSharing = "E078", "bad-sharing";
+    /// 2.0: a node level's item count differs from the records it holds.
+    ItemCountMismatch2 = "E079", "item-count-mismatch-2";
     /// A packed colour section is present without attribute kind 1, beside another colour section, with a wrong count, or shorter than its directory and trailer.
     BadPackedColorSection = "E080", "bad-packed-color-section";
     /// A packed colour section's trailer has a block shift other than 6, 7 or 8, unknown flags, an error bound over 127, a measured error over the bound, a non-zero reserved byte or an impossible squared error.

@@ -8,10 +8,13 @@
 //!
 //! - [`reader`]: whatever [`Dag::open`] accepts can be walked (every distinct
 //!   reachable node and leaf), queried and iterated without a panic, and the
-//!   answers agree with each other;
+//!   answers agree with each other; a 2.0 file that [`AnyDag::open`] accepts
+//!   is decoded record by record, its voxels listed in Morton order and
+//!   (when they are few) downgraded to 1.0 without a panic;
 //! - [`validator`]: a file the validator accepts opens, walks and iterates
 //!   without a single error and holds the voxel count its header states; a
-//!   file the reader refuses is never accepted;
+//!   file the reader refuses is never accepted; the levels of a valid 2.0
+//!   file are canonical: those of upgrade(downgrade(x));
 //! - [`packed_colors`]: a packed colour section that its checks accept
 //!   decodes the same at random and in sequence, every section decodes without
 //!   a panic, and colours encoded from the input decode within the bound;
@@ -30,8 +33,10 @@ use crate::layout::{HEADER_SIZE, MAGIC};
 use crate::packed_colors;
 use crate::reader::{Dag, NodeRef};
 use crate::transport;
+use crate::v2file::{self, AnyDag, Dag2};
 use crate::validate::{self, ValidateOptions};
 use crate::{AttributeKind, stats};
+use std::ops::ControlFlow;
 
 /// Voxels the harnesses iterate at most per input, so that a tiny file
 /// holding 2^63 voxels (a full volume) costs bounded time.
@@ -190,7 +195,11 @@ fn list_voxels(dag: &Dag<'_>) -> Listing {
 /// distinct reachable node, lists voxels, asks point queries and computes
 /// the statistics `dagtool info` prints, checking that they agree.
 pub fn reader(bytes: &[u8]) {
-    let Ok(dag) = Dag::open(bytes) else { return };
+    let dag = match AnyDag::open(bytes) {
+        Ok(AnyDag::V1(dag)) => dag,
+        Ok(AnyDag::V2(dag)) => return reader_v2(&dag, bytes),
+        Err(_) => return,
+    };
     let depth = dag.header().depth;
     assert!((crate::layout::MIN_DEPTH..=crate::layout::MAX_DEPTH).contains(&depth));
     assert_eq!(dag.levels().len(), usize::from(depth) - 1);
@@ -239,6 +248,71 @@ pub fn reader(bytes: &[u8]) {
     let _ = stats::analyze(&dag);
 }
 
+/// The voxels of a 2.0 file, at most [`VOXEL_LIMIT`] of them: (Morton codes,
+/// whether the listing is complete).
+fn list_voxels_v2(dag: &Dag2<'_>) -> (Vec<u64>, bool) {
+    let mut codes = Vec::new();
+    let mut full = false;
+    let walked = dag.for_each_leaf(|prefix, mut mask| {
+        while mask != 0 {
+            if codes.len() == VOXEL_LIMIT {
+                full = true;
+                return ControlFlow::Break(());
+            }
+            codes.push(prefix << 6 | u64::from(mask.trailing_zeros()));
+            mask &= mask - 1;
+        }
+        ControlFlow::Continue(())
+    });
+    (codes, walked.is_ok() && !full)
+}
+
+/// The reader harness on a 2.0 file.
+fn reader_v2(dag: &Dag2<'_>, bytes: &[u8]) {
+    let depth = dag.header().depth;
+    assert_eq!(dag.levels().len(), usize::from(depth) - 1);
+    assert_eq!(dag.header().file_size, bytes.len() as u64);
+    // Every record of every level, in sequence, until one does not decode.
+    for level in dag.levels().iter().filter(|l| !l.is_leaf) {
+        let mut at = 0u64;
+        while let Ok(node) = crate::v2::decode_node(level.bytes, at, level.widths) {
+            assert!(at + u64::from(node.size) <= level.bytes.len() as u64);
+            at += u64::from(node.size);
+        }
+    }
+    let (codes, complete) = list_voxels_v2(dag);
+    let limit = 1u128 << (3 * u32::from(depth));
+    assert!(
+        codes.windows(2).all(|w| w[0] < w[1]),
+        "voxels out of Morton order"
+    );
+    assert!(codes.iter().all(|&c| u128::from(c) < limit));
+    let attributes = dag.header().attribute_kind == AttributeKind::VoxelCount;
+    for (rank, &code) in codes.iter().enumerate().step_by(17) {
+        let [x, y, z] = crate::morton::decode(code);
+        let index = dag.voxel_index(x, y, z);
+        if complete && !attributes {
+            assert_eq!(index.ok(), Some(Some(rank as u64)));
+        }
+    }
+    let outside = (1u64 << depth).min(u64::from(u32::MAX)) as u32;
+    assert_eq!(dag.voxel_index(outside, 0, 0).ok(), Some(None));
+    if complete
+        && codes.len() <= 512
+        && let Ok(v1) = v2file::downgrade(dag)
+    {
+        let v1 = Dag::open(&v1).expect("a downgraded file opens");
+        let listed: Vec<u64> = v1
+            .voxels()
+            .map(|v| {
+                let [x, y, z] = v.expect("a downgraded file reads");
+                crate::morton::encode(x, y, z)
+            })
+            .collect();
+        assert_eq!(listed, codes, "the downgrade holds other voxels");
+    }
+}
+
 /// The validator harness: validates `bytes`, checks the report's form, and
 /// checks that what the validator accepts, the reader reads without a single
 /// error (validator accepts ⇒ reader never fails), and that what the reader
@@ -255,7 +329,16 @@ pub fn validator(bytes: &[u8]) {
         report.errors.windows(2).all(|w| w[0].offset <= w[1].offset),
         "findings are not sorted by offset"
     );
-    let opened = Dag::open(bytes);
+    let opened = match AnyDag::open(bytes) {
+        Ok(AnyDag::V2(dag)) => {
+            if report.is_valid() {
+                validator_v2(&dag);
+            }
+            return;
+        }
+        Ok(AnyDag::V1(dag)) => Ok(dag),
+        Err(e) => Err(e),
+    };
     if !report.is_valid() {
         return;
     }
@@ -292,6 +375,40 @@ pub fn validator(bytes: &[u8]) {
         for (i, c) in table.iter().take(VOXEL_LIMIT).enumerate() {
             assert_eq!(table.get(i as u64), Some(c));
         }
+    }
+}
+
+/// The validator harness on a valid 2.0 file.
+fn validator_v2(dag: &Dag2<'_>) {
+    let (codes, complete) = list_voxels_v2(dag);
+    let header_count = dag.header().voxel_count;
+    if complete {
+        assert_eq!(codes.len() as u64, header_count);
+    } else {
+        assert_eq!(
+            codes.len(),
+            VOXEL_LIMIT,
+            "listing the voxels of a valid file fails"
+        );
+    }
+    if complete {
+        let v1 = v2file::downgrade(dag).expect("a valid 2.0 file downgrades");
+        assert!(
+            validate::validate(&v1).is_empty(),
+            "its downgrade is invalid"
+        );
+        let again = v2file::upgrade(&Dag::open(&v1).expect("opens")).expect("upgrades");
+        // The levels are canonical; the header may carry what a validator
+        // accepts leniently (a higher minor version, optional features and
+        // sections), which a rewrite does not keep.
+        let again = Dag2::open(&again).expect("an upgraded file opens");
+        assert!(
+            again.levels() == dag.levels(),
+            "the levels of a valid 2.0 file are not canonical"
+        );
+    }
+    if let Some(table) = dag.color_table() {
+        assert_eq!(table.len(), header_count);
     }
 }
 

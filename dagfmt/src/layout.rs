@@ -21,6 +21,9 @@ pub const MAGIC: [u8; 8] = *b"\x89VDAG\r\n\x1a";
 
 /// Major version written by this library. Readers reject any other major version.
 pub const VERSION_MAJOR: u16 = 1;
+/// Major version of format 2.0 (spec §23): symmetry-aware records with
+/// bit-packed references. Read by [`crate::AnyDag`], written by [`crate::v2file`].
+pub const VERSION_MAJOR_2: u16 = 2;
 /// Minor version written by this library. Readers accept any minor version of
 /// their major version: minor versions only add optional features and sections.
 pub const VERSION_MINOR: u16 = 0;

@@ -6,6 +6,10 @@
 //!   per-level deduplication (also in runs of subtrees, for out-of-core builds);
 //! - [`assemble`]: [`assemble::FileLayout`], the one writer of headers and
 //!   section tables, which streams section bytes from callbacks;
+//! - [`v2`]: the format 2.0 level encoding (§23): the encoder, the one
+//!   record decoder [`v2::decode_node`] and the walks over 2.0 levels;
+//! - [`v2file`]: 2.0 files: [`Dag2`], [`AnyDag`] (opens both versions),
+//!   the 2.0 writer and the conversions 1.0 ↔ 2.0;
 //! - [`validate`]: checks every rule of the spec and reports every violation;
 //! - [`packed_colors`]: the compressed colour section (encoder, random-access
 //!   decoder, checks);
@@ -38,9 +42,12 @@ pub mod stats;
 pub mod symmetry;
 pub mod transport;
 pub mod v2;
+pub mod v2file;
 pub mod validate;
+mod validate2;
 
 pub use builder::DagBuilder;
 pub use error::{ErrorCode, FormatError};
 pub use layout::{AttributeKind, SectionKind};
 pub use reader::{ColorCursor, ColorTable, Dag, Header, LeafMask, LevelSection, Node, NodeRef};
+pub use v2file::{AnyDag, Dag2};

@@ -57,6 +57,9 @@ pub struct SectionEntry {
     pub level: u8,
     /// Pointer width in bytes (node levels), else 0.
     pub pointer_width: u8,
+    /// Bytes 5..8 of the entry: a 2.0 node level's reference widths
+    /// w_1, w_2, w_3 (§23.2); in 1.0 the pointer width and the reserved bytes.
+    pub widths: [u8; 3],
     /// Byte offset from the start of the file.
     pub offset: u64,
     /// Length in bytes.
@@ -363,6 +366,10 @@ fn decode_section_fields(index: u16, raw: &RawSectionEntry, kind: SectionKind) -
         kind,
         level: raw.level,
         pointer_width: raw.pointer_width,
+        widths: {
+            let [b6, b7] = u16::from_le(raw.reserved0).to_le_bytes();
+            [raw.pointer_width, b6, b7]
+        },
         offset: u64::from_le(raw.offset),
         length: u64::from_le(raw.length),
         item_count: u64::from_le(raw.item_count),
@@ -396,6 +403,8 @@ pub(crate) struct LayoutChecks {
     pub thorough: bool,
     /// Files longer than this are rejected ([`ErrorCode::FileTooLarge`]).
     pub max_file_size: u64,
+    /// Whether major version 2 (§23) is accepted besides 1.
+    pub accept_v2: bool,
 }
 
 /// Parses and checks the header and section table, stopping at the first
@@ -404,11 +413,12 @@ pub(crate) struct LayoutChecks {
 /// Problems that a lenient reader can live with (reserved fields, checksums,
 /// padding, non-minimal pointer widths) are left to the validator and not
 /// looked at here.
-pub(crate) fn parse_layout(bytes: &[u8]) -> Result<Layout, FormatError> {
+pub(crate) fn parse_layout(bytes: &[u8], accept_v2: bool) -> Result<Layout, FormatError> {
     let mut first = None;
     let checks = LayoutChecks {
         thorough: false,
         max_file_size: MAX_FILE_SIZE,
+        accept_v2,
     };
     let layout = check_layout(bytes, checks, &mut |e| {
         first = Some(e);
@@ -462,14 +472,16 @@ pub(crate) fn check_layout(
     }
     let raw: RawHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_SIZE]);
     let major = u16::from_le(raw.version_major);
-    if major != layout::VERSION_MAJOR {
-        let _ = sink(FormatError::new(
-            ErrorCode::UnsupportedVersion,
-            8,
-            format!("major version {major} is not supported (this reader reads version 1)"),
-        ));
+    if major != layout::VERSION_MAJOR && !(checks.accept_v2 && major == layout::VERSION_MAJOR_2) {
+        let message = if major == layout::VERSION_MAJOR_2 {
+            "major version 2 is not supported by this 1.0 reader (open it with dagfmt::AnyDag::open, or downgrade it with `dagtool upgrade --format-version 1`)".to_string()
+        } else {
+            format!("major version {major} is not supported (this reader reads versions 1 and 2)")
+        };
+        let _ = sink(FormatError::new(ErrorCode::UnsupportedVersion, 8, message));
         return None;
     }
+    let v2 = major == layout::VERSION_MAJOR_2;
     let (header, attribute_kind_known) = match decode_header(&raw) {
         Ok(header) => (header, true),
         Err(e) => {
@@ -616,10 +628,14 @@ pub(crate) fn check_layout(
             }
         };
         if checks.thorough {
-            for (field, value) in [
-                (6, u32::from(u16::from_le(raw.reserved0))),
-                (36, u32::from_le(raw.reserved1)),
-            ] {
+            // In 2.0, bytes 6 and 7 of a known kind's entry are widths (E070).
+            let reserved0 =
+                if v2 && kind_known && !matches!(entry.kind, SectionKind::UnknownOptional(_)) {
+                    0
+                } else {
+                    u32::from(u16::from_le(raw.reserved0))
+                };
+            for (field, value) in [(6, reserved0), (36, u32::from_le(raw.reserved1))] {
                 if value != 0 {
                     report!(FormatError::new(
                         ErrorCode::NonzeroReserved,
@@ -637,6 +653,7 @@ pub(crate) fn check_layout(
             previous_end,
             attribute_kind,
             kind_known,
+            v2,
         };
         ok &= check_section_entry(&header, &entry, &place, checks, sink)?;
         // (A colour section among the level sections was reported as misplaced.)
@@ -693,6 +710,8 @@ struct EntryPlace<'a> {
     attribute_kind: Option<AttributeKind>,
     /// Whether the entry's kind is known (an unknown required kind was reported already).
     kind_known: bool,
+    /// Whether the file is version 2.0 (§23).
+    v2: bool,
 }
 
 /// The checks on one section entry: placement and, for level sections, kind,
@@ -815,7 +834,67 @@ fn check_section_entry(
         ));
         return Some(false);
     }
+    if place.v2 && !matches!(entry.kind, SectionKind::UnknownOptional(_)) {
+        let w = entry.widths;
+        let ok = if entry.kind == SectionKind::NodeLevel {
+            1 <= w[0] && w[0] <= w[1] && w[1] <= w[2] && u32::from(w[2]) <= crate::v2::MAX_WIDTH
+        } else {
+            w == [0; 3]
+        };
+        if !ok {
+            report!(
+                FormatError::new(
+                    ErrorCode::BadWidths,
+                    at + 5,
+                    if entry.kind == SectionKind::NodeLevel {
+                        format!(
+                            "level {} has reference widths {w:?}, not 1 <= w1 <= w2 <= w3 <= {}",
+                            entry.level,
+                            crate::v2::MAX_WIDTH
+                        )
+                    } else {
+                        format!(
+                            "section {index} ({:?}) has bytes 5..8 {w:?}, must be 0",
+                            entry.kind
+                        )
+                    },
+                )
+                .at_level(entry.level)
+            );
+            if entry.kind == SectionKind::NodeLevel {
+                usable = false;
+            }
+        }
+    }
     match entry.kind {
+        SectionKind::NodeLevel if place.v2 => {
+            if entry.length > MAX_NODE_LEVEL_BYTES {
+                report!(
+                    FormatError::new(
+                        ErrorCode::LevelTooLarge,
+                        at + 16,
+                        format!(
+                            "level {} has {} bytes, over the limit of {MAX_NODE_LEVEL_BYTES}",
+                            entry.level, entry.length
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
+            } else if !checks.thorough && entry.item_count > entry.length / 5 {
+                // The validator counts the records instead.
+                report!(
+                    FormatError::new(
+                        ErrorCode::ItemCountMismatch2,
+                        at + 24,
+                        format!(
+                            "level {} declares {} records in {} bytes (each takes at least 5)",
+                            entry.level, entry.item_count, entry.length
+                        ),
+                    )
+                    .at_level(entry.level)
+                );
+            }
+        }
         SectionKind::NodeLevel => {
             if !(1..=4).contains(&entry.pointer_width) {
                 report!(
@@ -859,7 +938,7 @@ fn check_section_entry(
             }
         }
         SectionKind::LeafLevel => {
-            if entry.pointer_width != 0 {
+            if entry.pointer_width != 0 && !place.v2 {
                 report!(
                     FormatError::new(
                         ErrorCode::BadPointerWidth,
@@ -902,7 +981,7 @@ fn check_section_entry(
             }
         }
         SectionKind::VoxelColors => {
-            if entry.pointer_width != 0 {
+            if entry.pointer_width != 0 && !place.v2 {
                 report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
@@ -936,7 +1015,7 @@ fn check_section_entry(
             }
         }
         SectionKind::PackedColors => {
-            if entry.pointer_width != 0 {
+            if entry.pointer_width != 0 && !place.v2 {
                 report!(FormatError::new(
                     ErrorCode::BadPointerWidth,
                     at + 5,
@@ -993,7 +1072,7 @@ impl<'a> Dag<'a> {
     pub fn open(bytes: &'a [u8]) -> Result<Self, FormatError> {
         let Layout {
             header, sections, ..
-        } = parse_layout(bytes)?;
+        } = parse_layout(bytes, false)?;
         let level_count = usize::from(header.depth) - 1;
         let mut levels = Vec::with_capacity(level_count);
         let mut colors = None;

@@ -1,12 +1,11 @@
-//! Format 2.0 level encoding (spec/VDAG.md §23, draft): the encoder of the
+//! Format 2.0 level encoding (spec/VDAG.md §23): the encoder of the
 //! level sections from a 1.0 DAG, and [`decode_node`], the one decoder of a
 //! 2.0 node record and its references.
 //!
-//! This module encodes and decodes the *level sections* of §23.2–§23.7; the
-//! 2.0 file container (header with version 2, the widths in the section
-//! table), its open checks, the validator rules E070–E079 and the tools'
-//! `--format-version 2` are not written yet, so no tool writes or reads 2.0
-//! files (spec §23.11).
+//! This module encodes and decodes the *level sections* of §23.2–§23.7 and
+//! walks them ([`LevelView`], [`for_each_leaf`], [`voxel_index`]); the file
+//! container (header, section table, open checks, the conversions between
+//! the versions) is [`crate::v2file`], its validation [`crate::validate`].
 //!
 //! [`encode`] works level by level: it merges the 1.0 DAG under the
 //! reflections ([`crate::symmetry::canonicalize`]), ranks each level's
@@ -17,6 +16,8 @@
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::Dag;
 use crate::symmetry::{Group, NodeKey, canonicalize, reflect_leaf};
+use std::collections::HashMap;
+use std::ops::ControlFlow;
 
 /// Largest reference width in bits (§23.2).
 pub const MAX_WIDTH: u32 = 40;
@@ -26,6 +27,32 @@ pub const MAX_WIDTH: u32 = 40;
 pub struct EncodedLevel {
     /// The section bytes: records (interior level) or 64-bit leaf masks.
     pub bytes: Vec<u8>,
+    /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
+    pub widths: [u8; 3],
+    /// Records or leaves in the section.
+    pub item_count: u64,
+    /// Whether this is the leaf level.
+    pub is_leaf: bool,
+}
+
+impl EncodedLevel {
+    /// The level as a borrowed [`LevelView`].
+    pub fn view(&self) -> LevelView<'_> {
+        LevelView {
+            bytes: &self.bytes,
+            widths: self.widths,
+            item_count: self.item_count,
+            is_leaf: self.is_leaf,
+        }
+    }
+}
+
+/// One level of a 2.0 file (or of an [`Encoded`]) as borrowed bytes: the
+/// shape of [`EncodedLevel`], which tracers decode with [`decode_node`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LevelView<'a> {
+    /// The section bytes: records (interior level) or 64-bit leaf masks.
+    pub bytes: &'a [u8],
     /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
     pub widths: [u8; 3],
     /// Records or leaves in the section.
@@ -96,9 +123,8 @@ impl Node2 {
 }
 
 fn truncated(at: u64) -> FormatError {
-    // E071 of §23.10 once the 2.0 validator exists; E042 is its 1.0 form.
     FormatError::new(
-        ErrorCode::TruncatedNode,
+        ErrorCode::TruncatedRecord2,
         at,
         "2.0 node record runs past the end of its level".to_string(),
     )
@@ -166,12 +192,11 @@ impl Codes {
 
 impl Coding {
     /// The coding of a level with widths `widths` (w_1, w_2, w_3). Fails when
-    /// a width is 0 or above [`MAX_WIDTH`] (E070 of §23.10 once the 2.0
-    /// container exists; E026 is its 1.0 form).
+    /// a width is 0 or above [`MAX_WIDTH`] (E070, §23.10).
     pub fn new(widths: [u8; 3]) -> Result<Self, FormatError> {
         if widths.iter().any(|&w| w == 0 || u32::from(w) > MAX_WIDTH) {
             return Err(FormatError::new(
-                ErrorCode::BadPointerWidth,
+                ErrorCode::BadWidths,
                 0,
                 format!("2.0 reference widths {widths:?} are not all in 1..={MAX_WIDTH} bits"),
             ));
@@ -311,6 +336,40 @@ pub fn decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, 
     })
 }
 
+/// The references of the record at byte `offset` of a 2.0 interior level,
+/// as stored: per reference — the shared children's in physical slot order,
+/// then the base reference — its code (1 ..= 3) and value; and B, the bits
+/// of the record's stream (§23.2: codes and references, without the zero
+/// bits up to the next byte). For the validator's width and padding rules.
+pub fn record_references(
+    level: &[u8],
+    offset: u64,
+    widths: [u8; 3],
+) -> Result<(Vec<(u8, u64)>, u64), FormatError> {
+    let node = decode_node(level, offset, widths)?;
+    // decode_node checked that the whole record lies inside `level`.
+    let stream = &level[offset as usize + 4..offset as usize + node.size as usize];
+    let k = node.child_mask().count_ones() as u64;
+    let has_base = node
+        .children
+        .iter()
+        .flatten()
+        .any(|c| matches!(c, Child::Sequential { .. }));
+    let m = k + u64::from(has_base);
+    let mut refs = Vec::with_capacity(m as usize);
+    let mut bit = 2 * m;
+    for i in 0..m {
+        let code = bits_at(stream, 2 * i, 2).ok_or_else(|| truncated(offset))? as u8;
+        if code != 0 {
+            let w = u32::from(widths[usize::from(code) - 1]);
+            let v = bits_at(stream, bit, w).ok_or_else(|| truncated(offset))?;
+            bit += u64::from(w);
+            refs.push((code, v));
+        }
+    }
+    Ok((refs, bit))
+}
+
 /// The address of a child found by [`decode_node`] in a child level whose
 /// records are `child_level` (`None`: the child level is the leaf level, in
 /// which sequential children are `base + index`). In an interior child level
@@ -332,39 +391,6 @@ pub fn child_address(
                 Ok((at, 0))
             }
         },
-    }
-}
-
-/// One level section of a 2.0 DAG, borrowed: what a reader hands out per
-/// level (from a memory-mapped file) and what tracers take.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct LevelView<'a> {
-    /// The section bytes: records (interior level) or 64-bit leaf masks.
-    pub bytes: &'a [u8],
-    /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
-    pub widths: [u8; 3],
-    /// Records or leaves in the section.
-    pub item_count: u64,
-    /// Whether this is the leaf level.
-    pub is_leaf: bool,
-}
-
-impl EncodedLevel {
-    /// The level as a [`LevelView`].
-    pub fn view(&self) -> LevelView<'_> {
-        LevelView {
-            bytes: &self.bytes,
-            widths: self.widths,
-            item_count: self.item_count,
-            is_leaf: self.is_leaf,
-        }
-    }
-}
-
-impl Encoded {
-    /// The levels as [`LevelView`]s, root first.
-    pub fn views(&self) -> Vec<LevelView<'_>> {
-        self.levels.iter().map(EncodedLevel::view).collect()
     }
 }
 
@@ -406,10 +432,12 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
     let sym = canonicalize(dag, Group::Reflections, Group::Reflections)?;
     let leaf_level = sym.node_levels.len();
     if dag.is_empty() {
+        // An empty node level has no reference: its minimising widths are
+        // the least triple, 1, 1, 1 (§23.2).
         let mut levels = vec![
             EncodedLevel {
                 bytes: Vec::new(),
-                widths: [0; 3],
+                widths: [1; 3],
                 item_count: 0,
                 is_leaf: false,
             };
@@ -716,102 +744,206 @@ impl BitWriter {
 }
 
 impl Encoded {
+    /// The levels as borrowed [`LevelView`]s, root first.
+    pub fn views(&self) -> Vec<LevelView<'_>> {
+        self.levels.iter().map(EncodedLevel::view).collect()
+    }
+
     /// Walks the encoded levels from the root with the accumulated reflection
     /// of §23.4 and calls `leaf` with each leaf's Morton prefix (its brick's
     /// code) and logical mask, in Morton order. Decodes through
     /// [`decode_node`] and [`child_address`] only.
     pub fn for_each_leaf(&self, mut leaf: impl FnMut(u64, u64)) -> Result<(), FormatError> {
-        let last = self.levels.len() - 1;
-        if self.levels[last].item_count == 0 {
-            return Ok(());
-        }
-        self.walk(0, 0, 0, 0, &mut leaf)
-    }
-
-    fn leaf_mask(&self, index: u64) -> Result<u64, FormatError> {
-        let bytes = &self.levels[self.levels.len() - 1].bytes;
-        usize::try_from(index)
-            .ok()
-            .and_then(|i| crate::reader::read_u64(bytes, i * 8))
-            .ok_or_else(|| {
-                FormatError::new(
-                    ErrorCode::PointerOutOfRange,
-                    index,
-                    "leaf index past the leaf level".to_string(),
-                )
-            })
-    }
-
-    fn walk(
-        &self,
-        level: usize,
-        at: u64,
-        acc: u8,
-        prefix: u64,
-        leaf: &mut impl FnMut(u64, u64),
-    ) -> Result<(), FormatError> {
-        let last = self.levels.len() - 1;
-        if level == last {
-            leaf(prefix, reflect_leaf(self.leaf_mask(at)?, acc));
-            return Ok(());
-        }
-        let lv = &self.levels[level];
-        let node = decode_node(&lv.bytes, at, lv.widths)?;
-        let child_level = (level + 1 < last).then(|| {
-            let l = &self.levels[level + 1];
-            (l.bytes.as_slice(), l.widths)
-        });
-        for c in 0..8u8 {
-            if let Some(child) = node.children[usize::from(c ^ acc)] {
-                let (target, r) = child_address(child, child_level)?;
-                self.walk(level + 1, target, acc ^ r, prefix * 8 + u64::from(c), leaf)?;
-            }
-        }
-        Ok(())
+        for_each_leaf(&self.views(), |prefix, mask| {
+            leaf(prefix, mask);
+            ControlFlow::Continue(())
+        })
     }
 
     /// The dense voxel index (§12.3) of the voxel with Morton code `code`, by
     /// the sibling sums of §23.5 (attribute kind 1 with unsaturated counts;
     /// for tests), or `None` when it is not set.
     pub fn voxel_index(&self, code: u64) -> Result<Option<u64>, FormatError> {
-        let last = self.levels.len() - 1;
-        if self.levels[last].item_count == 0 {
-            return Ok(None);
-        }
-        let mut at = 0u64;
-        let mut acc = 0u8;
-        let mut index = 0u64;
-        for level in 0..last {
-            let lv = &self.levels[level];
-            let node = decode_node(&lv.bytes, at, lv.widths)?;
-            let child_level = (level + 1 < last).then(|| {
-                let l = &self.levels[level + 1];
-                (l.bytes.as_slice(), l.widths)
-            });
-            let c = ((code >> (3 * (last - level) + 3)) & 7) as u8;
-            for p in 0..8u8 {
-                if let Some(child) = node.children[usize::from(p)].filter(|_| p ^ acc < c) {
-                    let (target, _) = child_address(child, child_level)?;
-                    index += if level + 1 == last {
-                        u64::from(self.leaf_mask(target)?.count_ones())
-                    } else {
-                        let l = &self.levels[level + 1];
-                        u64::from(decode_node(&l.bytes, target, l.widths)?.attribute())
-                    };
-                }
-            }
-            let Some(child) = node.children[usize::from(c ^ acc)] else {
-                return Ok(None);
-            };
-            let (target, r) = child_address(child, child_level)?;
-            at = target;
-            acc ^= r;
-        }
-        let mask = reflect_leaf(self.leaf_mask(at)?, acc);
-        let bit = code & 63;
-        Ok((mask >> bit & 1 != 0)
-            .then(|| index + u64::from((mask & ((1u64 << bit) - 1)).count_ones())))
+        voxel_index(&self.views(), code, true)
     }
+}
+
+fn leaf_mask(levels: &[LevelView<'_>], index: u64) -> Result<u64, FormatError> {
+    let bytes = levels[levels.len() - 1].bytes;
+    usize::try_from(index)
+        .ok()
+        .and_then(|i| i.checked_mul(8))
+        .and_then(|i| crate::reader::read_u64(bytes, i))
+        .ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::ReferenceOutOfRange2,
+                index,
+                "leaf index past the leaf level".to_string(),
+            )
+        })
+}
+
+fn child_level<'a>(levels: &[LevelView<'a>], level: usize) -> Option<(&'a [u8], [u8; 3])> {
+    let l = &levels[level + 1];
+    (!l.is_leaf).then_some((l.bytes, l.widths))
+}
+
+/// Walks 2.0 `levels` (root first, the leaf level last) from the root with
+/// the accumulated reflection of §23.4 and calls `leaf` with each leaf's
+/// Morton prefix (its brick's code) and logical mask, in Morton order, until
+/// it answers [`ControlFlow::Break`]. Never panics: a reference that leads
+/// nowhere is an error.
+pub fn for_each_leaf(
+    levels: &[LevelView<'_>],
+    mut leaf: impl FnMut(u64, u64) -> ControlFlow<()>,
+) -> Result<(), FormatError> {
+    let Some(last) = levels.len().checked_sub(1) else {
+        return Ok(());
+    };
+    if levels[last].item_count == 0 || levels[0].item_count == 0 {
+        return Ok(());
+    }
+    walk(levels, 0, 0, 0, 0, &mut leaf).map(|_| ())
+}
+
+fn walk(
+    levels: &[LevelView<'_>],
+    level: usize,
+    at: u64,
+    acc: u8,
+    prefix: u64,
+    leaf: &mut impl FnMut(u64, u64) -> ControlFlow<()>,
+) -> Result<ControlFlow<()>, FormatError> {
+    let last = levels.len() - 1;
+    if level == last {
+        return Ok(leaf(prefix, reflect_leaf(leaf_mask(levels, at)?, acc)));
+    }
+    let lv = &levels[level];
+    let node = decode_node(lv.bytes, at, lv.widths)?;
+    let below = child_level(levels, level);
+    for c in 0..8u8 {
+        if let Some(child) = node.children[usize::from(c ^ acc)] {
+            let (target, r) = child_address(child, below)?;
+            if walk(
+                levels,
+                level + 1,
+                target,
+                acc ^ r,
+                prefix * 8 + u64::from(c),
+                leaf,
+            )?
+            .is_break()
+            {
+                return Ok(ControlFlow::Break(()));
+            }
+        }
+    }
+    Ok(ControlFlow::Continue(()))
+}
+
+/// The voxels in the subtree at `target` of `level` (a leaf's popcount, or
+/// the record's attribute when `attributes` says it holds an unsaturated
+/// count, else the sum over the children): reflections do not change it.
+/// Each record is counted once (the sums are remembered), so the work is at
+/// most linear in the levels whatever the file says.
+pub fn subtree_count(
+    levels: &[LevelView<'_>],
+    level: usize,
+    target: u64,
+    attributes: bool,
+) -> Result<u64, FormatError> {
+    subtree_count_memo(levels, level, target, attributes, &mut HashMap::new())
+}
+
+fn subtree_count_memo(
+    levels: &[LevelView<'_>],
+    level: usize,
+    target: u64,
+    attributes: bool,
+    memo: &mut HashMap<(usize, u64), u64>,
+) -> Result<u64, FormatError> {
+    if let Some(&n) = memo.get(&(level, target)) {
+        return Ok(n);
+    }
+    let n = subtree_count_uncached(levels, level, target, attributes, memo)?;
+    memo.insert((level, target), n);
+    Ok(n)
+}
+
+fn subtree_count_uncached(
+    levels: &[LevelView<'_>],
+    level: usize,
+    target: u64,
+    attributes: bool,
+    memo: &mut HashMap<(usize, u64), u64>,
+) -> Result<u64, FormatError> {
+    let last = levels.len() - 1;
+    if level == last {
+        return Ok(u64::from(leaf_mask(levels, target)?.count_ones()));
+    }
+    let lv = &levels[level];
+    let node = decode_node(lv.bytes, target, lv.widths)?;
+    if attributes && node.attribute() != crate::layout::COUNT_SATURATED {
+        return Ok(u64::from(node.attribute()));
+    }
+    let below = child_level(levels, level);
+    let mut sum = 0u64;
+    for child in node.children.iter().flatten() {
+        let (t, _) = child_address(*child, below)?;
+        sum = sum.saturating_add(subtree_count_memo(levels, level + 1, t, attributes, memo)?);
+    }
+    Ok(sum)
+}
+
+/// The dense voxel index (§12.3) of the voxel with Morton code `code` in 2.0
+/// `levels`, by the sibling sums of §23.5, or `None` when it is not set.
+/// `attributes`: the records' attributes are voxel counts (kind 1;
+/// saturated counts are summed from the children).
+pub fn voxel_index(
+    levels: &[LevelView<'_>],
+    code: u64,
+    attributes: bool,
+) -> Result<Option<u64>, FormatError> {
+    let Some(last) = levels.len().checked_sub(1) else {
+        return Ok(None);
+    };
+    if levels[last].item_count == 0 || levels[0].item_count == 0 {
+        return Ok(None);
+    }
+    let mut at = 0u64;
+    let mut acc = 0u8;
+    let mut index = 0u64;
+    let mut memo = HashMap::new();
+    for level in 0..last {
+        let lv = &levels[level];
+        let node = decode_node(lv.bytes, at, lv.widths)?;
+        let below = child_level(levels, level);
+        let c = ((code >> (3 * (last - level) + 3)) & 7) as u8;
+        for p in 0..8u8 {
+            if let Some(child) = node.children[usize::from(p)].filter(|_| p ^ acc < c) {
+                let (target, _) = child_address(child, below)?;
+                index = index.saturating_add(subtree_count_memo(
+                    levels,
+                    level + 1,
+                    target,
+                    attributes,
+                    &mut memo,
+                )?);
+            }
+        }
+        let Some(child) = node.children[usize::from(c ^ acc)] else {
+            return Ok(None);
+        };
+        let (target, r) = child_address(child, below)?;
+        at = target;
+        acc ^= r;
+    }
+    let mask = reflect_leaf(leaf_mask(levels, at)?, acc);
+    let bit = code & 63;
+    Ok(
+        (mask >> bit & 1 != 0)
+            .then(|| index + u64::from((mask & ((1u64 << bit) - 1)).count_ones())),
+    )
 }
 
 #[cfg(test)]
@@ -856,9 +988,8 @@ mod tests {
     /// panics: a record that runs past `level` is an error (E071).
     fn naive_decode_node(level: &[u8], offset: u64, widths: [u8; 3]) -> Result<Node2, FormatError> {
         if widths.iter().any(|&w| u32::from(w) > MAX_WIDTH) {
-            // E070 of §23.10 once the 2.0 container exists; E026 is its 1.0 form.
             return Err(FormatError::new(
-                ErrorCode::BadPointerWidth,
+                ErrorCode::BadWidths,
                 offset,
                 format!("2.0 reference widths {widths:?} exceed {MAX_WIDTH} bits"),
             ));

@@ -28,7 +28,9 @@
 //!    exact subtree voxel counts computed on the way up) and, once a level's
 //!    parent has been walked, records nobody points to (E047).
 //! 4. The header's voxel count against the root's subtree count (E062).
-//! 5. A packed colour section's directory and blocks (E082 – E087), unless
+//! 5. A format 2.0 file (spec §23.10) replaces steps 2 – 4 by the walk of
+//!    `validate2` (E070 – E079 and the 1.0 rules that still apply).
+//! 6. A packed colour section's directory and blocks (E082 – E087), unless
 //!    its entry or trailer is wrong: after the first error in the directory,
 //!    the blocks are not checked; after the first error in a block, the rest
 //!    of that block is not checked.
@@ -144,11 +146,11 @@ pub fn validate_with(bytes: &[u8], options: &ValidateOptions) -> ValidationRepor
 
 /// Validation stopped because the error limit was reached.
 #[derive(Debug)]
-struct Stop;
+pub(crate) struct Stop;
 
 /// The findings so far.
-struct Findings {
-    errors: Vec<FormatError>,
+pub(crate) struct Findings {
+    pub(crate) errors: Vec<FormatError>,
     max: usize,
     truncated: bool,
 }
@@ -156,7 +158,7 @@ struct Findings {
 impl Findings {
     #[cold]
     #[inline(never)]
-    fn report(&mut self, e: FormatError) -> Result<(), Stop> {
+    pub(crate) fn report(&mut self, e: FormatError) -> Result<(), Stop> {
         if self.errors.len() >= self.max {
             self.truncated = true;
             return Err(Stop);
@@ -193,6 +195,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
     let checks = LayoutChecks {
         thorough: true,
         max_file_size: options.max_file_size,
+        accept_v2: true,
     };
     let mut stopped = false;
     let layout = reader::check_layout(bytes, checks, &mut |e| match f.report(e) {
@@ -253,7 +256,11 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
                     .ok()
             })
             .flatten();
-        let walked = check_levels(&layout, bytes, f);
+        let walked = if layout.header.version_major == layout::VERSION_MAJOR_2 {
+            crate::validate2::check_levels(&layout, bytes, f)
+        } else {
+            check_levels(&layout, bytes, f)
+        };
         let walked = match colors {
             Some(colors) => {
                 let own = colors

@@ -112,6 +112,12 @@ pub struct ConvertOptions {
     /// Point clouds: the radius of the ball each point sets (world units;
     /// 0: the voxel containing the point).
     pub point_radius: f64,
+    /// What the nodes' attribute bits hold (kind 1, voxel counts, unless
+    /// `--attributes none`); colours need kind 1.
+    pub attributes: AttributeKind,
+    /// The major format version written: 1 (default) or 2 (spec §23: the
+    /// 1.0 DAG is built as usual, then upgraded in memory).
+    pub format_version: u16,
 }
 
 /// One line on a packed colour section: size per voxel, against raw RGB, and
@@ -190,6 +196,8 @@ impl ConvertOptions {
             forced_spill: None,
             bounds: None,
             point_radius: 0.0,
+            attributes: AttributeKind::VoxelCount,
+            format_version: 1,
         }
     }
 }
@@ -261,6 +269,10 @@ pub struct ConvertSummary {
     pub main_thread_cpu_seconds: Option<f64>,
     /// Warnings (e.g. materials not loaded).
     pub warnings: Vec<String>,
+    /// Format 2.0: the bytes of the 1.0 file it was upgraded from.
+    pub v1_file_bytes: Option<u64>,
+    /// Format 2.0: seconds spent encoding and writing the 2.0 file.
+    pub upgrade_seconds: Option<f64>,
 }
 
 impl ConvertSummary {
@@ -314,6 +326,13 @@ impl ConvertSummary {
             self.file_bytes,
             human_bytes(self.file_bytes)
         );
+        if let (Some(v1), Some(secs)) = (self.v1_file_bytes, self.upgrade_seconds) {
+            let _ = writeln!(
+                s,
+                "format:   2.0, {:.3} of the 1.0 file ({v1} bytes); encoded in {secs:.2} s",
+                self.file_bytes as f64 / v1.max(1) as f64
+            );
+        }
         let _ = writeln!(
             s,
             "time:     {:.2} s (load {:.2} s, voxelize and build {:.2} s, write {:.2} s)",
@@ -469,6 +488,57 @@ fn detect_format(path: &Path, format: InputFormat) -> Result<Source, ConvertErro
 
 /// Runs a conversion. Nothing is written unless it succeeds.
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
+    if opts.colors && opts.attributes != AttributeKind::VoxelCount {
+        return Err(ConvertError::Usage(
+            "--colors needs the voxel-count attributes (they index the colours): drop --attributes none".into(),
+        ));
+    }
+    match opts.format_version {
+        1 => convert_v1(opts),
+        2 => convert_v2(opts),
+        v => Err(ConvertError::Usage(format!(
+            "--format-version {v}: this tool writes format versions 1 and 2"
+        ))),
+    }
+}
+
+/// Format 2.0: the 1.0 file is built into a temporary file beside the
+/// output (so the memory limit and the out-of-core build apply unchanged),
+/// then upgraded in memory (`dagfmt::v2file::upgrade`) and written
+/// atomically; the temporary file is removed.
+fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
+    check_output(&opts.output, opts.force)?;
+    let dir = dagfmt::output::output_dir(&opts.output);
+    let temp = tempfile::Builder::new()
+        .prefix(".vdag-1.0-")
+        .suffix(".tmp")
+        .tempfile_in(&dir)
+        .map_err(|e| ConvertError::io(format!("cannot create a file in {}", dir.display()), e))?;
+    let mut inner = opts.clone();
+    inner.output = temp.path().to_path_buf();
+    inner.force = true;
+    inner.format_version = 1;
+    let mut summary = convert_v1(&inner)?;
+    let start = Instant::now();
+    let map = dagfmt::mmap::MappedFile::open(temp.path())
+        .map_err(|e| ConvertError::io("cannot read back the 1.0 file", e))?;
+    let dag = dagfmt::Dag::open(map.bytes())
+        .map_err(|e| ConvertError::Input(format!("the 1.0 file built does not open: {e}")))?;
+    let v2 = dagfmt::v2file::upgrade(&dag)
+        .map_err(|e| ConvertError::Limit(format!("cannot encode format 2.0: {e}")))?;
+    summary.v1_file_bytes = Some(summary.file_bytes);
+    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| {
+        std::io::Write::write_all(w, &v2)
+    })?;
+    drop(map);
+    drop(temp);
+    let upgrade = start.elapsed().as_secs_f64();
+    summary.upgrade_seconds = Some(upgrade);
+    summary.total_seconds += upgrade;
+    Ok(summary)
+}
+
+fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     let start = Instant::now();
     check_output(&opts.output, opts.force)?;
     let meta = std::fs::metadata(&opts.input)
@@ -719,7 +789,7 @@ fn convert_voxels(
     };
     let t = Instant::now();
     let settings = spill_settings(opts, list.depth, plan.run_budget)?;
-    let mut sink = DagSink::new(list.depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let mut sink = DagSink::new(list.depth, opts.attributes, settings, scratch)?;
     let mut i = 0;
     while i < list.codes.len() {
         let brick = list.codes[i] >> 6;
@@ -739,7 +809,7 @@ fn convert_voxels(
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth: summary.depth,
-        attributes: AttributeKind::VoxelCount,
+        attributes: opts.attributes,
         root_min: summary.root_min,
         root_size: summary.root_size,
         voxel_count: dag.voxel_count(),
@@ -768,11 +838,11 @@ fn convert_empty_mesh(
         "the mesh has no triangles: the file holds the empty volume (root cube [0, 1]^3)".into(),
     );
     let settings = spill_settings(opts, depth, 0)?;
-    let sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let sink = DagSink::new(depth, opts.attributes, settings, scratch)?;
     let dag = sink.finish(|| 0, &|_| {})?;
     let header = FileHeader {
         depth,
-        attributes: AttributeKind::VoxelCount,
+        attributes: opts.attributes,
         root_min: summary.root_min,
         root_size: summary.root_size,
         voxel_count: 0,
@@ -991,7 +1061,7 @@ fn convert_mesh(
         batch,
     };
     let settings = spill_settings(opts, depth, plan.run_budget)?;
-    let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let mut sink = DagSink::new(depth, opts.attributes, settings, scratch)?;
     let mut colors = opts
         .colors
         .then(|| ColourSink::new(scratch, plan.colour_cap, opts.color_error));
@@ -1074,7 +1144,7 @@ fn convert_mesh(
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth,
-        attributes: AttributeKind::VoxelCount,
+        attributes: opts.attributes,
         root_min: mapping.root_min,
         root_size: mapping.root_size,
         voxel_count: dag.voxel_count(),
@@ -1095,7 +1165,7 @@ fn build_sorted(
     voxels: SortedVoxels,
 ) -> Result<(FinishedDag, Option<Colours>), ConvertError> {
     let settings = spill_settings(opts, depth, run_budget)?;
-    let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let mut sink = DagSink::new(depth, opts.attributes, settings, scratch)?;
     let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap, opts.color_error));
     let mut rgba: Vec<u8> = Vec::new();
     let mut brick = None;
@@ -1319,7 +1389,7 @@ fn convert_points(
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth,
-        attributes: AttributeKind::VoxelCount,
+        attributes: opts.attributes,
         root_min,
         root_size,
         voxel_count: dag.voxel_count(),
@@ -1450,7 +1520,7 @@ fn convert_grid(
     summary.build_seconds = t.elapsed().as_secs_f64();
     let header = FileHeader {
         depth,
-        attributes: AttributeKind::VoxelCount,
+        attributes: opts.attributes,
         root_min,
         root_size,
         voxel_count: dag.voxel_count(),

@@ -123,6 +123,12 @@ fn valid_files() -> Vec<Vec<u8>> {
             .unwrap()
             .to_bytes(),
     );
+    // Every file also as format 2.0.
+    let v2: Vec<Vec<u8>> = files
+        .iter()
+        .map(|f| dagfmt::v2file::upgrade(&dagfmt::Dag::open(f).unwrap()).unwrap())
+        .collect();
+    files.extend(v2);
     files
 }
 

@@ -196,7 +196,7 @@ fn regions(bytes: &[u8]) -> Vec<Region> {
             .map(|&(_, name)| name)
             .expect("field table covers the record")
     };
-    let dag = Dag::open(bytes).expect("valid file");
+    let dag = dagfmt::AnyDag::open(bytes).expect("valid file");
     let mut map: Vec<Region> = (0..HEADER_SIZE)
         .map(|at| Region::Header(field(HEADER_FIELDS, at)))
         .collect();
@@ -223,8 +223,10 @@ fn regions(bytes: &[u8]) -> Vec<Region> {
 /// look up each voxel's set bit and dense index, and read the colours. Errors
 /// are fine; only panics fail. Returns the number of voxels listed.
 fn walk(bytes: &[u8]) -> u64 {
-    let Ok(dag) = Dag::open(bytes) else {
-        return 0;
+    let dag = match dagfmt::AnyDag::open(bytes) {
+        Ok(dagfmt::AnyDag::V1(dag)) => dag,
+        Ok(dagfmt::AnyDag::V2(dag)) => return walk_v2(&dag),
+        Err(_) => return 0,
     };
     let leaf_level = dag.leaf_level();
     let mut seen = HashSet::new();
@@ -271,6 +273,36 @@ fn walk(bytes: &[u8]) -> u64 {
             let _ = dag.voxel_index(x, y, z);
         }
     }
+    listed
+}
+
+/// [`walk`] for a 2.0 file: every record decoded in sequence, every voxel
+/// listed (each 37th looked up by its dense index), the colours read.
+fn walk_v2(dag: &dagfmt::Dag2<'_>) -> u64 {
+    for level in dag.levels().iter().filter(|l| !l.is_leaf) {
+        let mut at = 0u64;
+        while let Ok(node) = dagfmt::v2::decode_node(level.bytes, at, level.widths) {
+            at += u64::from(node.size);
+        }
+    }
+    if let Some(table) = dag.color_table() {
+        for (i, c) in table.iter().enumerate() {
+            assert_eq!(table.get(i as u64), Some(c));
+        }
+    }
+    let mut listed = 0u64;
+    let _ = dag.for_each_leaf(|prefix, mut mask| {
+        while mask != 0 {
+            listed += 1;
+            if listed % 37 == 1 {
+                let code = prefix << 6 | u64::from(mask.trailing_zeros());
+                let [x, y, z] = dagfmt::morton::decode(code);
+                let _ = dag.voxel_index(x, y, z);
+            }
+            mask &= mask - 1;
+        }
+        std::ops::ControlFlow::Continue(())
+    });
     listed
 }
 
@@ -414,6 +446,19 @@ fn every_bit_flip_in_a_file_with_two_byte_pointers_is_detected() {
 
 /// A flip anywhere in the transport form is refused by `unpack`, or gives a
 /// file the validator rejects, or does not change the unpacked bytes at all.
+#[test]
+fn every_bit_flip_in_a_2_0_file_is_detected() {
+    // Format 2.0 (spec §23.10): the same coverage by checksums and padding.
+    let v1 = ball_with_colors();
+    let bytes = dagfmt::v2file::upgrade(&Dag::open(&v1).expect("valid")).expect("2.0");
+    assert_eq!(
+        dagfmt::AnyDag::open(&bytes).expect("opens").version_major(),
+        2
+    );
+    let summary = flip_every_bit("ball with colours, 2.0", &bytes);
+    print_summary("ball with colours, 2.0", &bytes, &summary);
+}
+
 #[test]
 fn every_bit_flip_in_the_transport_form_is_detected_or_harmless() {
     let original = ball_with_colors();

@@ -118,7 +118,7 @@ fn fix_header_crc(bytes: &mut [u8]) {
 /// Opens and validates `bytes`, each under the allocation allowance; returns
 /// the reader's error code and the validator's codes.
 fn check_hostile(what: &str, bytes: &[u8]) -> (ErrorCode, Vec<ErrorCode>) {
-    let (opened, open_peak) = peak_heap(|| Dag::open(bytes).map(|_| ()));
+    let (opened, open_peak) = peak_heap(|| dagfmt::AnyDag::open(bytes).map(|_| ()));
     let options = ValidateOptions {
         threads: false,
         ..ValidateOptions::default()
@@ -157,6 +157,69 @@ fn the_sample_is_valid_and_cheap() {
     let (dag, peak) = peak_heap(|| Dag::open(&bytes).map(|d| d.depth()));
     assert_eq!(dag.unwrap(), 6);
     assert!(peak <= 16 * 1024, "{peak} bytes");
+}
+
+/// The sample as format 2.0.
+fn sample_v2() -> Vec<u8> {
+    dagfmt::v2file::upgrade(&Dag::open(&sample()).unwrap()).unwrap()
+}
+
+#[test]
+fn the_2_0_sample_is_valid_and_cheap() {
+    let bytes = sample_v2();
+    let options = ValidateOptions {
+        threads: false,
+        ..ValidateOptions::default()
+    };
+    let (report, _) = peak_heap(|| validate_with(&bytes, &options));
+    assert!(report.is_valid(), "{:?}", report.errors);
+    let (dag, peak) = peak_heap(|| dagfmt::AnyDag::open(&bytes).map(|d| d.version_major()));
+    assert_eq!(dag.unwrap(), 2);
+    assert!(peak <= 16 * 1024, "{peak} bytes");
+}
+
+#[test]
+fn huge_node_count_2_0() {
+    let mut bytes = sample_v2();
+    put(&mut bytes, entry(1) + 24, &u64::MAX.to_le_bytes());
+    fix_header_crc(&mut bytes);
+    let (code, codes) = check_hostile("2.0 node level with 2^64 - 1 records", &bytes);
+    assert_eq!(code, ErrorCode::ItemCountMismatch2);
+    assert_eq!(codes, [ErrorCode::ItemCountMismatch2]);
+}
+
+#[test]
+fn huge_leaf_count_2_0() {
+    let mut bytes = sample_v2();
+    put(&mut bytes, entry(4) + 24, &(u64::MAX / 8).to_le_bytes());
+    fix_header_crc(&mut bytes);
+    let (code, _) = check_hostile("2.0 leaf level with 2^61 leaves", &bytes);
+    assert_eq!(code, ErrorCode::LevelTooLarge);
+}
+
+#[test]
+fn node_level_longer_than_the_limit_2_0() {
+    let mut bytes = sample_v2();
+    put(
+        &mut bytes,
+        entry(1) + 16,
+        &(layout::MAX_NODE_LEVEL_BYTES + 8).to_le_bytes(),
+    );
+    fix_header_crc(&mut bytes);
+    let (code, codes) = check_hostile("2.0 node level over 2^34 bytes", &bytes);
+    // The section also runs past the end of the file (E020, checked first).
+    assert_eq!(code, ErrorCode::SectionOutOfBounds);
+    assert!(codes.contains(&ErrorCode::LevelTooLarge), "{codes:?}");
+}
+
+#[test]
+fn widths_over_40_bits_2_0() {
+    let mut bytes = sample_v2();
+    bytes[entry(1) + 7] = 41;
+    fix_header_crc(&mut bytes);
+    let (code, codes) = check_hostile("2.0 widths over 40 bits", &bytes);
+    assert_eq!(code, ErrorCode::BadWidths);
+    assert_eq!(codes, [ErrorCode::BadWidths]);
 }
 
 #[test]

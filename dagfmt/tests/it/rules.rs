@@ -536,7 +536,7 @@ rule_cases! {
         vec![crafted_at(b, 0), crafted(text)]
     };
     e003_unsupported_version: UnsupportedVersion => || {
-        vec![crafted_at(edited(AttributeKind::VoxelCount, |b| put16(b, 8, 2)), 8)]
+        vec![crafted_at(edited(AttributeKind::VoxelCount, |b| put16(b, 8, 3)), 8)]
     };
     e004_unknown_required_feature: UnknownRequiredFeature => || {
         vec![crafted_at(edited(AttributeKind::VoxelCount, |b| put32(b, 16, 1 << 7)), 16)]
@@ -933,6 +933,16 @@ rule_cases! {
     e086_color_index_out_of_range: ColorIndexOutOfRange => || packed_breaking(ErrorCode::ColorIndexOutOfRange);
     e087_color_value_out_of_range: ColorValueOutOfRange => || packed_breaking(ErrorCode::ColorValueOutOfRange);
     e088_bad_split_sub_block: BadSplitSubBlock => || breaking(ErrorCode::BadSplitSubBlock, split_sample);
+    e070_bad_widths: BadWidths => || v2_cases(ErrorCode::BadWidths);
+    e071_truncated_record_2: TruncatedRecord2 => || v2_cases(ErrorCode::TruncatedRecord2);
+    e072_nonzero_bit_padding: NonzeroBitPadding => || v2_cases(ErrorCode::NonzeroBitPadding);
+    e073_reference_out_of_range_2: ReferenceOutOfRange2 => || v2_cases(ErrorCode::ReferenceOutOfRange2);
+    e074_width_not_minimal: WidthNotMinimal => || v2_cases(ErrorCode::WidthNotMinimal);
+    e075_duplicate_class: DuplicateClass => || v2_cases(ErrorCode::DuplicateClass);
+    e076_not_canonical: NotCanonical => || v2_cases(ErrorCode::NotCanonical);
+    e077_bad_level_order: BadLevelOrder => || v2_cases(ErrorCode::BadLevelOrder);
+    e078_bad_sharing: BadSharing => || v2_cases(ErrorCode::BadSharing);
+    e079_item_count_mismatch_2: ItemCountMismatch2 => || v2_cases(ErrorCode::ItemCountMismatch2);
 }
 
 /// The sample with a lossless format 1.2 PACKED_COLORS section (blocks of
@@ -957,6 +967,28 @@ fn split_sample(edit: &mut dyn FnMut(&mut Vec<u8>)) -> Vec<u8> {
         data,
     ));
     assemble(&spec)
+}
+
+/// The format 2.0 rules (spec §23.10): their malformed files are made by the
+/// conformance suite's 2.0 file surgery (`conformance::model2`), which lays a
+/// 2.0 file out again after an edit; they are read from its committed cases.
+fn v2_cases(code: ErrorCode) -> Vec<Crafted> {
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/validate");
+    let prefix = format!("{}-", code.code());
+    let mut files: Vec<_> = std::fs::read_dir(&dir)
+        .expect("conformance cases")
+        .map(|e| e.expect("entry").path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with(&prefix))
+        })
+        .collect();
+    files.sort();
+    files
+        .into_iter()
+        .map(|p| crafted(std::fs::read(p).expect("read case")))
+        .collect()
 }
 
 /// The sample (attribute kind 1) with a lossless PACKED_COLORS section as

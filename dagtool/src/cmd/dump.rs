@@ -9,7 +9,8 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use dagfmt::layout::{self, HEADER_CRC_OFFSET, HEADER_SIZE, SECTION_ENTRY_SIZE, SectionKind};
-use dagfmt::{Dag, LeafMask};
+use dagfmt::v2::{self, Child};
+use dagfmt::{AnyDag, Dag, Dag2, LeafMask};
 
 use super::FileBytes;
 use crate::error::ConvertError;
@@ -248,12 +249,27 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
             1,
             format!("level = {}", opt(l.u8_at(at + 4))),
         );
-        l.line(
-            at as u64 + 5,
-            1,
-            format!("pointer_width = {} bytes", opt(l.u8_at(at + 5))),
-        );
-        l.line(at as u64 + 6, 2, "reserved (zero)");
+        let v2 = bytes.get(8..10) == Some(&[2, 0]);
+        if v2 {
+            // Format 2.0 (spec §23.10): bytes 5..8 are a node level's widths.
+            l.line(
+                at as u64 + 5,
+                3,
+                format!(
+                    "widths = {} / {} / {} bits (2.0 node level; 0 otherwise)",
+                    opt(l.u8_at(at + 5)),
+                    opt(l.u8_at(at + 6)),
+                    opt(l.u8_at(at + 7))
+                ),
+            );
+        } else {
+            l.line(
+                at as u64 + 5,
+                1,
+                format!("pointer_width = {} bytes", opt(l.u8_at(at + 5))),
+            );
+            l.line(at as u64 + 6, 2, "reserved (zero)");
+        }
         let offset = l.u64_at(at + 8);
         let length = l.u64_at(at + 16);
         l.line(
@@ -296,6 +312,10 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
         l.line(at as u64 + 36, 4, "reserved (zero)");
     }
 
+    if let Ok(AnyDag::V2(dag)) = AnyDag::open(bytes) {
+        dump_v2_levels(&mut l, &dag, nodes);
+        return l.out;
+    }
     let dag = match Dag::open(bytes) {
         Ok(d) => d,
         Err(e) => {
@@ -439,4 +459,103 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
         }
     }
     l.out
+}
+
+/// The levels of a 2.0 file (spec §23.2): each record's header, codes and
+/// references, decoded by `dagfmt::v2::decode_node`.
+fn dump_v2_levels(l: &mut Listing<'_>, dag: &Dag2<'_>, nodes: u64) {
+    let levels = dag.levels();
+    for (level, view) in levels.iter().enumerate() {
+        let offset = dag.sections()[level].offset;
+        if view.is_leaf {
+            l.heading(format!(
+                "level {level} = leaf level: {} leaves of 8 bytes at {offset:#x} (2.0: read under the path's reflection, §23.4)",
+                view.item_count
+            ));
+            for i in 0..view.item_count.min(nodes) {
+                let at = offset + i * 8;
+                let mask = view
+                    .bytes
+                    .get(i as usize * 8..i as usize * 8 + 8)
+                    .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")));
+                match mask {
+                    Some(m) => l.line(at, 8, format!("leaf {i}: {} voxels", m.count_ones())),
+                    None => {
+                        let _ = writeln!(l.out, "(leaf {i} lies past the level)");
+                        break;
+                    }
+                }
+            }
+        } else {
+            let next = if levels[level + 1].is_leaf {
+                "leaf indices"
+            } else {
+                "byte offsets into the next level"
+            };
+            l.heading(format!(
+                "level {level}: {} records, {} bytes at {offset:#x}, widths {}/{}/{} bits ({next})",
+                view.item_count,
+                view.bytes.len(),
+                view.widths[0],
+                view.widths[1],
+                view.widths[2]
+            ));
+            let mut at = 0u64;
+            for i in 0..view.item_count.min(nodes) {
+                let node = match v2::decode_node(view.bytes, at, view.widths) {
+                    Ok(n) => n,
+                    Err(e) => {
+                        let _ = writeln!(l.out, "(record {i}: {e})");
+                        break;
+                    }
+                };
+                l.line(
+                    offset + at,
+                    4,
+                    format!(
+                        "record {i} (byte {at}): child mask {:08b} (physical slots), attribute {}",
+                        node.child_mask(),
+                        node.attribute()
+                    ),
+                );
+                let refs: Vec<String> = node
+                    .children
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(slot, c)| {
+                        c.map(|c| match c {
+                            Child::Shared { target, reflection } => {
+                                format!("{slot}->{target} r{reflection}")
+                            }
+                            Child::Sequential { base, index } => {
+                                format!("{slot}->seq {index} from {base}")
+                            }
+                        })
+                    })
+                    .collect();
+                l.line(
+                    offset + at + 4,
+                    node.size as usize - 4,
+                    format!("  codes and references: {}", refs.join(", ")),
+                );
+                at += u64::from(node.size);
+            }
+        }
+        if view.item_count > nodes {
+            let _ = writeln!(l.out, "... {} more", view.item_count - nodes);
+        }
+    }
+    if let Some(colors) = dag.colors() {
+        l.heading(format!(
+            "voxel colours: {} RGBA8 values, dense voxel index order (as in 1.0)",
+            colors.len() / 4
+        ));
+    }
+    if let Some(packed) = dag.packed_colors() {
+        l.heading(format!(
+            "packed colours: {} colours in {} bytes (as in 1.0)",
+            packed.len(),
+            packed.bytes().len()
+        ));
+    }
 }

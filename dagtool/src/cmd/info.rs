@@ -1,11 +1,15 @@
 //! `dagtool info FILE`: header, per-level table, totals, and the size of the
-//! same DAG in the classic 32-bit layout and as an SVO.
+//! same voxels in the classic 32-bit layout, as an SVO, in the 1.0 layout and
+//! in the SSVDAG encoding (`dagfmt::stats::format_sizes`). A 2.0 file is
+//! described by its own levels; its totals and comparisons come from its
+//! 1.0 form, rebuilt in memory.
 
 use std::fmt::Write as _;
 use std::path::Path;
 
-use dagfmt::Dag;
-use dagfmt::stats::{self, DagStats};
+use dagfmt::stats::{self, DagStats, FormatSizes};
+use dagfmt::v2::LevelView;
+use dagfmt::{AnyDag, Dag, Header};
 
 use super::FileBytes;
 use crate::error::ConvertError;
@@ -13,27 +17,93 @@ use crate::error::ConvertError;
 /// The `info` report of `path`, as text or JSON.
 pub fn run(path: &Path, json: bool) -> Result<String, ConvertError> {
     let file = FileBytes::open(path)?;
-    let dag = Dag::open(file.bytes()).map_err(|e| {
+    let unreadable = |e: &dyn std::fmt::Display| {
         ConvertError::Input(format!(
             "{}: not a readable .vdag file: {e}",
             path.display()
         ))
-    })?;
-    let stats = stats::analyze(&dag)
-        .map_err(|e| ConvertError::Input(format!("{}: malformed DAG: {e}", path.display())))?;
+    };
+    let malformed = |e: &dyn std::fmt::Display| {
+        ConvertError::Input(format!("{}: malformed DAG: {e}", path.display()))
+    };
+    let opened = AnyDag::open(file.bytes()).map_err(|e| unreadable(&e))?;
+    let v1_form;
+    let (dag, v2) = match &opened {
+        AnyDag::V1(dag) => (dag.clone(), None),
+        AnyDag::V2(dag2) => {
+            v1_form = dagfmt::v2file::downgrade(dag2).map_err(|e| malformed(&e))?;
+            (
+                Dag::open(&v1_form).map_err(|e| malformed(&e))?,
+                Some(dag2.levels()),
+            )
+        }
+    };
+    let mut stats = stats::analyze(&dag).map_err(|e| malformed(&e))?;
+    let sizes = stats::format_sizes(&dag, &stats).map_err(|e| malformed(&e))?;
+    // The file described is the one given, not its 1.0 form.
+    stats.file_bytes = file.bytes().len() as u64;
+    if let Some(levels) = v2 {
+        stats.level_bytes = levels.iter().map(|l| l.bytes.len() as u64).sum();
+    }
+    let info = Info {
+        header: opened.header(),
+        v2,
+        sizes,
+    };
     Ok(if json {
-        render_json(path, &dag, &stats, file.was_packed())
+        render_json(path, &dag, &stats, &info, file.was_packed())
     } else {
-        render_text(path, &dag, &stats, file.was_packed())
+        render_text(path, &dag, &stats, &info, file.was_packed())
     })
+}
+
+/// What the report needs besides the (1.0 form of the) DAG and its statistics.
+struct Info<'a> {
+    /// The file's own header.
+    header: &'a Header,
+    /// A 2.0 file's levels.
+    v2: Option<&'a [LevelView<'a>]>,
+    /// The sizes of the same voxels in other layouts.
+    sizes: FormatSizes,
+}
+
+/// The lines comparing the file with the other layouts of its voxels.
+fn sizes_text(out: &mut String, s: &DagStats, info: &Info<'_>) {
+    let z = &info.sizes;
+    let classic = z.classic_svdag_bytes.max(1) as f64;
+    let _ = writeln!(out);
+    let _ = writeln!(
+        out,
+        "the same voxels, as fractions of the classic 32-bit SVDAG layout:"
+    );
+    let _ = writeln!(
+        out,
+        "  this file ({}.{}): {:>16} bytes ({:.3})",
+        info.header.version_major,
+        info.header.version_minor,
+        s.file_bytes,
+        s.file_bytes as f64 / classic
+    );
+    let _ = writeln!(
+        out,
+        "  1.0 layout:       {:>16} bytes ({:.3}; levels, header and table)",
+        z.v1_bytes,
+        z.v1_bytes as f64 / classic
+    );
+    let _ = write!(
+        out,
+        "  SSVDAG:           {:>16} bytes ({:.3}; level data, no attributes)",
+        z.ssvdag_bytes,
+        z.ssvdag_bytes as f64 / classic
+    );
 }
 
 fn ratio(a: u128, b: u64) -> f64 {
     if b == 0 { 0.0 } else { a as f64 / b as f64 }
 }
 
-fn render_text(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String {
-    let h = dag.header();
+fn render_text(path: &Path, dag: &Dag<'_>, s: &DagStats, info: &Info<'_>, packed: bool) -> String {
+    let h = info.header;
     let mut out = String::new();
     let _ = writeln!(
         out,
@@ -96,6 +166,32 @@ fn render_text(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
     }
     let _ = writeln!(out, "header crc:      {:#010x}", h.header_crc);
     let _ = writeln!(out);
+    if let Some(levels) = info.v2 {
+        let _ = writeln!(
+            out,
+            "{:>5} {:>6} {:>14} {:>16} {:>12}",
+            "level", "kind", "items", "bytes", "widths"
+        );
+        for (l, level) in levels.iter().enumerate() {
+            let _ = writeln!(
+                out,
+                "{l:>5} {:>6} {:>14} {:>16} {:>12}",
+                if level.is_leaf { "leaf" } else { "node" },
+                level.item_count,
+                level.bytes.len(),
+                if level.is_leaf {
+                    "-".to_string()
+                } else {
+                    format!(
+                        "{}/{}/{}",
+                        level.widths[0], level.widths[1], level.widths[2]
+                    )
+                }
+            );
+        }
+        let _ = writeln!(out);
+        let _ = writeln!(out, "its 1.0 form (the same voxels, rebuilt in memory):");
+    }
     let _ = writeln!(
         out,
         "{:>5} {:>6} {:>14} {:>16} {:>5} {:>22} {:>10}",
@@ -156,6 +252,7 @@ fn render_text(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
         ratio(s.pointer_entropy_bound_bytes, s.file_bytes),
         s.pointer_entropy_bound_bytes as f64 / s.classic_svdag_bytes.max(1) as f64
     );
+    sizes_text(&mut out, s, info);
     out
 }
 
@@ -168,8 +265,8 @@ fn big(v: u128) -> serde_json::Value {
     }
 }
 
-fn render_json(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String {
-    let h = dag.header();
+fn render_json(path: &Path, dag: &Dag<'_>, s: &DagStats, info: &Info<'_>, packed: bool) -> String {
+    let h = info.header;
     let leaf = s.levels.len().saturating_sub(1);
     let levels: Vec<serde_json::Value> = s
         .levels
@@ -210,6 +307,14 @@ fn render_json(path: &Path, dag: &Dag<'_>, s: &DagStats, packed: bool) -> String
         "svo_bytes": big(s.svo_bytes),
         "pointer_entropy_bound_bytes": big(s.pointer_entropy_bound_bytes),
         "levels": levels,
+        "v1_bytes": info.sizes.v1_bytes,
+        "ssvdag_bytes": info.sizes.ssvdag_bytes,
+        "v2_levels": info.v2.map(|levels| levels.iter().map(|l| serde_json::json!({
+            "kind": if l.is_leaf { "leaf" } else { "node" },
+            "items": l.item_count,
+            "bytes": l.bytes.len(),
+            "widths": l.widths,
+        })).collect::<Vec<_>>()),
     });
     serde_json::to_string_pretty(&doc).expect("JSON values serialize")
 }

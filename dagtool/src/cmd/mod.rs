@@ -1,9 +1,11 @@
-//! The file commands: `validate`, `info`, `dump`, `pack`, `unpack`, `recompress`.
+//! The file commands: `validate`, `info`, `dump`, `pack`, `unpack`, `recompress`,
+//! `upgrade`.
 
 pub mod dump;
 pub mod info;
 pub mod pack;
 pub mod recompress;
+pub mod upgrade;
 pub mod validate;
 
 use std::path::Path;

@@ -13,6 +13,7 @@ mod chunking;
 mod cli_errors;
 mod colors;
 mod commands;
+mod format2;
 mod formats;
 mod fuzz_smoke;
 mod mapped_files;

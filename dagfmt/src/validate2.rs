@@ -1,0 +1,525 @@
+//! Full validation of the levels of a format 2.0 file (spec §23.10): the
+//! part of [`crate::validate`] after the header, the section table and the
+//! checksums, which are shared with 1.0.
+//!
+//! # What is checked, in order
+//!
+//! 1. The root level's record count (E040).
+//! 2. The leaf level: empty masks (E048).
+//! 3. Each node level, leaves first: every record decodes within its level
+//!    (E071; the walk of the level stops there), has children (E041), zero
+//!    bits after its last reference (E072), references in the smallest
+//!    width that holds them (E074, at the record) and targets that are
+//!    record starts or leaves (E073, also for each sequential run); the
+//!    records found against the item count (E079); the level's widths
+//!    against the minimising triple of its references (E074, at the entry);
+//!    then, for the level below, every node named as §23.3 says (E078);
+//!    and the attributes (E060, E061) from the exact subtree counts.
+//! 4. The header's voxel count (E062).
+//! 5. Only when nothing above was found: the canonical form (E075 – E077).
+//!    The file's voxels are re-encoded ([`crate::v2file::downgrade`], then
+//!    [`crate::v2::encode`]) and compared with the file, deepest level
+//!    first; at the deepest level that differs, more items than the
+//!    canonical encoding is E075 (a class stored twice), the same items in
+//!    another order E077, otherwise E076; each is reported once, at the
+//!    first item of that level that differs. This step costs a 1.0 build
+//!    and a 2.0 encoding of the file's voxels.
+//!
+//! A level that cannot be interpreted (E020, E024, E025, E070) is not
+//! walked, and neither are the rules that need it (E073 and E078 into it,
+//! the counts above it, E062, step 5).
+
+use crate::error::{ErrorCode, FormatError};
+use crate::layout::{AttributeKind, COUNT_SATURATED};
+use crate::reader::{self, SectionEntry};
+use crate::v2::{self, Child, LevelView};
+use crate::validate::{Findings, Stop};
+
+/// A level as the walk found it.
+struct Walked {
+    /// Byte offset (interior) of each record, in order; for the leaf level
+    /// empty (items are indices).
+    starts: Vec<u64>,
+    /// Subtree voxel count of each item (`None`: unknown).
+    counts: Vec<Option<u64>>,
+    /// Whether every item could be read.
+    complete: bool,
+}
+
+impl Walked {
+    /// The item a reference's target names: a record start, or a leaf index.
+    fn item(&self, is_leaf: bool, target: u64) -> Option<usize> {
+        if is_leaf {
+            usize::try_from(target)
+                .ok()
+                .filter(|&i| i < self.counts.len())
+        } else {
+            self.starts.binary_search(&target).ok()
+        }
+    }
+}
+
+fn bits_of(v: u64) -> u32 {
+    (64 - v.leading_zeros()).max(1)
+}
+
+/// Checks the levels of a 2.0 file; `levels[l]` is `None` when level `l`
+/// cannot be interpreted (reported already).
+pub(crate) fn check_levels(
+    layout: &reader::Layout,
+    bytes: &[u8],
+    f: &mut Findings,
+) -> Result<(), Stop> {
+    let header = &layout.header;
+    let sections = &layout.sections;
+    let leaf_level = usize::from(header.depth) - 2;
+    let entries: Vec<&SectionEntry> = sections[..=leaf_level].iter().collect();
+    let views: Vec<Option<LevelView<'_>>> = entries
+        .iter()
+        .enumerate()
+        .map(|(i, e)| {
+            if !layout.usable[i] {
+                return None;
+            }
+            let start = usize::try_from(e.offset).ok()?;
+            let end = start.checked_add(usize::try_from(e.length).ok()?)?;
+            Some(LevelView {
+                bytes: bytes.get(start..end)?,
+                widths: if i == leaf_level { [0; 3] } else { e.widths },
+                item_count: e.item_count,
+                is_leaf: i == leaf_level,
+            })
+        })
+        .collect();
+
+    let root = entries[0];
+    let all_empty = entries.iter().all(|e| e.item_count == 0 && e.length == 0);
+    if root.item_count > 1 || (root.item_count == 0 && !all_empty) {
+        f.report(
+            FormatError::new(
+                ErrorCode::BadRootLevel,
+                root.entry_offset() + 24,
+                format!(
+                    "the root level holds {} records; it must hold 1, or 0 with every level empty",
+                    root.item_count
+                ),
+            )
+            .at_level(0),
+        )?;
+    }
+    let attributes = if !layout.attribute_kind_known {
+        None
+    } else {
+        Some(header.attribute_kind)
+    };
+
+    // The leaf level.
+    let mut below: Option<Walked> = views[leaf_level].as_ref().map(|view| {
+        let counts = view
+            .bytes
+            .chunks_exact(8)
+            .map(|m| {
+                Some(u64::from(
+                    u64::from_le_bytes(m.try_into().expect("8")).count_ones(),
+                ))
+            })
+            .collect();
+        Walked {
+            starts: Vec::new(),
+            counts,
+            complete: true,
+        }
+    });
+    if let Some(view) = &views[leaf_level] {
+        for (i, m) in view.bytes.chunks_exact(8).enumerate() {
+            if m == [0; 8] {
+                f.report(
+                    FormatError::new(
+                        ErrorCode::EmptyLeafMask,
+                        entries[leaf_level].offset + i as u64 * 8,
+                        "leaf mask is zero (a leaf holds at least one voxel)",
+                    )
+                    .at_level(leaf_level as u8)
+                    .at_node(i as u64),
+                )?;
+            }
+        }
+    }
+
+    let mut root_count = None;
+    for l in (0..leaf_level).rev() {
+        let Some(view) = &views[l] else {
+            below = None;
+            continue;
+        };
+        let walked = walk_level(
+            f,
+            (entries[l], entries[l + 1]),
+            view,
+            l,
+            below.as_ref(),
+            leaf_level,
+            attributes,
+        )?;
+        if l == 0 && walked.complete && walked.counts.len() as u64 == view.item_count {
+            root_count = match walked.counts.first() {
+                None => Some(0),
+                Some(c) => *c,
+            };
+        }
+        below = Some(walked);
+    }
+    if leaf_level == 0 {
+        root_count = below
+            .as_ref()
+            .filter(|w| w.counts.len() as u64 == entries[0].item_count)
+            .map(|w| w.counts.first().copied().flatten().unwrap_or(0));
+    }
+    if let Some(total) = root_count
+        && total != header.voxel_count
+    {
+        f.report(FormatError::new(
+            ErrorCode::HeaderVoxelCount,
+            72,
+            format!(
+                "the header counts {} voxels, the DAG holds {total}",
+                header.voxel_count
+            ),
+        ))?;
+    }
+    if f.errors.is_empty()
+        && root_count.is_some()
+        && views.iter().all(Option::is_some)
+        && leaf_level > 0
+    {
+        check_canonical(f, bytes, &entries, &views)?;
+    }
+    Ok(())
+}
+
+/// Walks node level `l` (E071, E041, E072, E073, E074, E079, E060, E061)
+/// and then checks how the level below is named (E078).
+fn walk_level(
+    f: &mut Findings,
+    (entry, below_entry): (&SectionEntry, &SectionEntry),
+    view: &LevelView<'_>,
+    l: usize,
+    below: Option<&Walked>,
+    leaf_level: usize,
+    attributes: Option<AttributeKind>,
+) -> Result<Walked, Stop> {
+    let child_is_leaf = l + 1 == leaf_level;
+    let level = l as u8;
+    let base_offset = entry.offset;
+    let mut starts = Vec::new();
+    let mut counts = Vec::new();
+    let mut complete = true;
+    let mut hist = [0u64; 65];
+    // Per item of the level below: references naming it, sequential runs through it.
+    let child_items = below.map_or(0, |b| b.counts.len());
+    let mut shared_refs = vec![0u32; child_items];
+    let mut runs = vec![0u32; child_items];
+    let mut at = 0u64;
+    let len = view.bytes.len() as u64;
+    while at < len {
+        let index = starts.len() as u64;
+        let record_at = base_offset + at;
+        let report_at = |code, message: String| {
+            FormatError::new(code, record_at, message)
+                .at_level(level)
+                .at_node(index)
+        };
+        let node = match v2::decode_node(view.bytes, at, view.widths) {
+            Ok(node) => node,
+            Err(e) => {
+                f.report(report_at(ErrorCode::TruncatedRecord2, e.message))?;
+                complete = false;
+                break;
+            }
+        };
+        let (refs, bits) = v2::record_references(view.bytes, at, view.widths)
+            .expect("decode_node accepted the record");
+        starts.push(at);
+        if node.child_mask() == 0 {
+            f.report(report_at(
+                ErrorCode::EmptyChildMask,
+                "record has no children".to_string(),
+            ))?;
+        }
+        // E072: the bits after B in the record's last byte.
+        let used = bits % 8;
+        if used != 0 {
+            let last = view.bytes[(at + u64::from(node.size) - 1) as usize];
+            if last >> used != 0 {
+                f.report(
+                    FormatError::new(
+                        ErrorCode::NonzeroBitPadding,
+                        record_at + u64::from(node.size) - 1,
+                        format!(
+                            "the {} bits after the record's references are not zero",
+                            8 - used
+                        ),
+                    )
+                    .at_level(level)
+                    .at_node(index),
+                )?;
+            }
+        }
+        // E074 per reference.
+        for &(code, value) in &refs {
+            hist[bits_of(value) as usize] += 1;
+            let least = view
+                .widths
+                .iter()
+                .position(|&w| u32::from(w) >= bits_of(value))
+                .map_or(code, |i| i as u8 + 1);
+            if least != code {
+                f.report(report_at(
+                    ErrorCode::WidthNotMinimal,
+                    format!(
+                        "a reference of {} bits uses code {code} (width {}) where code {least} (width {}) holds it",
+                        bits_of(value),
+                        view.widths[usize::from(code) - 1],
+                        view.widths[usize::from(least) - 1]
+                    ),
+                ))?;
+                break;
+            }
+        }
+        // E073 and the naming of the level below; the subtree count.
+        let mut sum = Some(0u64);
+        if let Some(b) = below {
+            let mut bad = None;
+            let mut seq_index = 0usize;
+            let mut seq_at = None::<usize>;
+            for child in node.children.iter().flatten() {
+                let item = match *child {
+                    Child::Shared { target, .. } => {
+                        let item = b.item(child_is_leaf, target);
+                        if let Some(i) = item {
+                            shared_refs[i] = shared_refs[i].saturating_add(1);
+                        } else {
+                            bad = Some(format!(
+                                "a reference names {target}, not a record start or leaf of level {}",
+                                l + 1
+                            ));
+                        }
+                        item
+                    }
+                    Child::Sequential { base, .. } => {
+                        let item = match seq_at {
+                            None => b.item(child_is_leaf, base),
+                            Some(prev) => Some(prev + 1).filter(|&i| i < b.counts.len()),
+                        };
+                        seq_index += 1;
+                        match item {
+                            Some(i) => {
+                                runs[i] = runs[i].saturating_add(1);
+                                seq_at = Some(i);
+                            }
+                            None => {
+                                bad = Some(format!(
+                                    "sequential child {} (run from {base}) is not in level {}",
+                                    seq_index - 1,
+                                    l + 1
+                                ));
+                                seq_at = Some(usize::MAX - 1);
+                            }
+                        }
+                        item
+                    }
+                };
+                sum = match (sum, item.and_then(|i| b.counts[i])) {
+                    (Some(s), Some(c)) => Some(s.saturating_add(c)),
+                    _ => None,
+                };
+            }
+            if let Some(message) = bad {
+                f.report(report_at(ErrorCode::ReferenceOutOfRange2, message))?;
+            }
+        } else {
+            sum = None;
+        }
+        let attribute = node.attribute();
+        match attributes {
+            Some(AttributeKind::None) if attribute != 0 => {
+                f.report(report_at(
+                    ErrorCode::NonzeroAttribute,
+                    format!("attribute kind 0 but the record's attribute is {attribute}"),
+                ))?;
+            }
+            Some(AttributeKind::VoxelCount) => {
+                if let Some(s) = sum {
+                    let expected = s.min(u64::from(COUNT_SATURATED)) as u32;
+                    if attribute != expected {
+                        f.report(report_at(
+                            ErrorCode::WrongVoxelCount,
+                            format!("the record stores a voxel count of {attribute}, its subtree holds {s}"),
+                        ))?;
+                    }
+                }
+            }
+            _ => {}
+        }
+        counts.push(sum);
+        at += u64::from(node.size);
+    }
+    if complete && starts.len() as u64 != entry.item_count {
+        f.report(
+            FormatError::new(
+                ErrorCode::ItemCountMismatch2,
+                entry.entry_offset() + 24,
+                format!(
+                    "level {l} declares {} records, its bytes hold {}",
+                    entry.item_count,
+                    starts.len()
+                ),
+            )
+            .at_level(level),
+        )?;
+    }
+    if complete
+        && let Some(minimal) = v2::best_widths(&hist)
+        && minimal != view.widths
+        && !starts.is_empty()
+    {
+        f.report(
+            FormatError::new(
+                ErrorCode::WidthNotMinimal,
+                entry.entry_offset() + 5,
+                format!(
+                    "level {l} has widths {:?}; its references need {minimal:?}",
+                    view.widths
+                ),
+            )
+            .at_level(level),
+        )?;
+    }
+    // E078 for the level below, once its every parent has been read.
+    if complete && let Some(b) = below {
+        for i in 0..child_items {
+            let (s, r) = (shared_refs[i], runs[i]);
+            let ok = (s == 0 && r == 1) || (s >= 2 && r == 0);
+            if !ok {
+                let (offset, what) = if child_is_leaf {
+                    (i as u64 * 8, "leaf")
+                } else {
+                    (b.starts[i], "record")
+                };
+                f.report(
+                    FormatError::new(
+                        ErrorCode::BadSharing,
+                        below_entry.offset + offset,
+                        format!(
+                            "{what} {i} of level {} is named by {s} references and {r} sequential runs (a node is named by one run, or by at least two references)",
+                            l + 1
+                        ),
+                    )
+                    .at_level(level + 1)
+                    .at_node(i as u64),
+                )?;
+            }
+        }
+    }
+    Ok(Walked {
+        starts,
+        counts,
+        complete,
+    })
+}
+
+/// E075 – E077: compares the file with the canonical encoding of its voxels.
+fn check_canonical(
+    f: &mut Findings,
+    bytes: &[u8],
+    entries: &[&SectionEntry],
+    views: &[Option<LevelView<'_>>],
+) -> Result<(), Stop> {
+    let Ok(dag2) = crate::v2file::Dag2::open(bytes) else {
+        return Ok(());
+    };
+    let Ok(v1) = crate::v2file::downgrade(&dag2) else {
+        return Ok(());
+    };
+    let Ok(dag1) = crate::Dag::open(&v1) else {
+        return Ok(());
+    };
+    let Ok(canonical) = v2::encode(&dag1) else {
+        return Ok(());
+    };
+    let leaf_level = views.len() - 1;
+    for l in (0..=leaf_level).rev() {
+        let file = views[l].as_ref().expect("every level usable");
+        let canon = canonical.levels[l].view();
+        if file.bytes == canon.bytes && file.widths == canon.widths {
+            continue;
+        }
+        let file_items = split_items(file);
+        let canon_items = split_items(&canon);
+        let first_diff = file_items
+            .iter()
+            .zip(&canon_items)
+            .position(|(a, b)| a.1 != b.1)
+            .unwrap_or(file_items.len().min(canon_items.len()));
+        let offset = entries[l].offset
+            + file_items
+                .get(first_diff)
+                .map_or(file.bytes.len() as u64, |i| i.0);
+        let (code, message) = if file_items.len() > canon_items.len() {
+            (
+                ErrorCode::DuplicateClass,
+                format!(
+                    "level {l} stores {} items where its subtrees form {} classes under reflection",
+                    file_items.len(),
+                    canon_items.len()
+                ),
+            )
+        } else {
+            let mut a: Vec<&[u8]> = file_items.iter().map(|i| i.1).collect();
+            let mut b: Vec<&[u8]> = canon_items.iter().map(|i| i.1).collect();
+            a.sort_unstable();
+            b.sort_unstable();
+            if a == b {
+                (
+                    ErrorCode::BadLevelOrder,
+                    format!("level {l} is not in the order of §23.7 (item {first_diff} differs)"),
+                )
+            } else {
+                (
+                    ErrorCode::NotCanonical,
+                    format!(
+                        "item {first_diff} of level {l} is not the canonical member of its class, or a reference does not carry the least reflection"
+                    ),
+                )
+            }
+        };
+        f.report(
+            FormatError::new(code, offset, message)
+                .at_level(l as u8)
+                .at_node(first_diff as u64),
+        )?;
+        break;
+    }
+    Ok(())
+}
+
+/// The items of a level: (offset in the level, bytes), records or leaves.
+fn split_items<'a>(view: &LevelView<'a>) -> Vec<(u64, &'a [u8])> {
+    let mut out = Vec::new();
+    if view.is_leaf {
+        for (i, m) in view.bytes.chunks_exact(8).enumerate() {
+            out.push((i as u64 * 8, m));
+        }
+        return out;
+    }
+    let mut at = 0u64;
+    while let Ok(node) = v2::decode_node(view.bytes, at, view.widths) {
+        let end = at + u64::from(node.size);
+        out.push((at, &view.bytes[at as usize..end as usize]));
+        at = end;
+        if at >= view.bytes.len() as u64 {
+            break;
+        }
+    }
+    out
+}

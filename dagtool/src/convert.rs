@@ -2,6 +2,7 @@
 
 use std::fmt::Write as _;
 use std::io::IsTerminal;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -19,6 +20,7 @@ use crate::external::{
 use crate::mesh::{DEFAULT_COLOR, GridMapping, Mesh, SnappedMesh};
 use crate::output::{check_output, write_atomic};
 use crate::pipeline::{self, Bins, ChunkOutput, SolidMode, VoxelizeConfig};
+use crate::region::{ColourMode, Placement, Region};
 use crate::sysinfo::{
     current_rss, human_bytes, peak_rss, process_cpu_seconds, thread_cpu_seconds, total_memory,
 };
@@ -112,6 +114,9 @@ pub struct ConvertOptions {
     /// Point clouds: the radius of the ball each point sets (world units;
     /// 0: the voxel containing the point).
     pub point_radius: f64,
+    /// Build only this cell of the root cube, into a part (spec § 24); needs
+    /// `bounds`, so that every part has the same root cube.
+    pub region: Option<Region>,
 }
 
 /// One line on a packed colour section: size per voxel, against raw RGB, and
@@ -174,6 +179,7 @@ impl ConvertOptions {
             forced_spill: None,
             bounds: None,
             point_radius: 0.0,
+            region: None,
         }
     }
 }
@@ -454,6 +460,16 @@ fn detect_format(path: &Path, format: InputFormat) -> Result<Source, ConvertErro
 /// Runs a conversion. Nothing is written unless it succeeds.
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     let start = Instant::now();
+    if let Some(r) = opts.region {
+        if opts.bounds.is_none() {
+            return Err(ConvertError::Usage(format!(
+                "--region {r} needs --bounds: every part of one volume must have the same root cube"
+            )));
+        }
+        if let Some(d) = opts.depth {
+            r.check(d)?;
+        }
+    }
     check_output(&opts.output, opts.force)?;
     let meta = std::fs::metadata(&opts.input)
         .map_err(|e| ConvertError::io(format!("cannot open input {}", opts.input.display()), e))?;
@@ -642,16 +658,19 @@ fn write_output(
     summary: &mut ConvertSummary,
 ) -> Result<(), ConvertError> {
     let t = Instant::now();
-    let mut sections = dag.level_sections();
-    let levels = sections.len();
-    sections.extend(colors.map(Colours::section));
-    let layout = FileLayout::new(header, sections).map_err(build_error)?;
-    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| {
-        layout.write_to(w, |index, sink| match index.checked_sub(levels) {
-            None => dag.emit_level(index, sink),
-            Some(_) => colors.expect("a colour section").emit(sink),
-        })
-    })?;
+    let placement = opts.region.map(|r| Placement {
+        level: r.level,
+        cells: r.index()..r.index() + 1,
+        colours: ColourMode::of(colors.is_some(), opts.color_error),
+    });
+    summary.file_bytes = write_dag(
+        &opts.output,
+        opts.force,
+        dag,
+        colors,
+        header,
+        placement.as_ref(),
+    )?;
     summary.write_seconds = t.elapsed().as_secs_f64();
     summary.voxels = dag.voxel_count();
     summary.levels = dag.level_stats();
@@ -659,6 +678,58 @@ fn write_output(
     summary.colors_spilled = colors.is_some_and(Colours::spilled);
     summary.colors_packed = colors.and_then(Colours::packed);
     Ok(())
+}
+
+/// Writes a finished DAG, its colours and, for a part, its placement
+/// (spec § 24) atomically to `path`; returns the bytes written.
+pub(crate) fn write_dag(
+    path: &Path,
+    force: bool,
+    dag: &FinishedDag,
+    colors: Option<&Colours>,
+    header: FileHeader,
+    placement: Option<&Placement>,
+) -> Result<u64, ConvertError> {
+    let mut sections = dag.level_sections();
+    let levels = sections.len();
+    sections.extend(colors.map(Colours::section));
+    let coloured = sections.len();
+    sections.extend(placement.map(Placement::section));
+    let layout = FileLayout::new(header, sections).map_err(build_error)?;
+    write_atomic(path, force, |w| {
+        layout.write_to(w, |index, sink| {
+            if index < levels {
+                dag.emit_level(index, sink)
+            } else if index < coloured {
+                colors.expect("a colour section").emit(sink)
+            } else {
+                sink(&placement.expect("a placement").to_bytes())
+            }
+        })
+    })
+}
+
+/// The Morton codes of the voxels a conversion keeps: those of the region,
+/// or all (`None`). Checks the region against the depth.
+fn kept_codes(opts: &ConvertOptions, depth: u8) -> Result<Option<Range<u64>>, ConvertError> {
+    match opts.region {
+        None => Ok(None),
+        Some(r) => {
+            r.check(depth)?;
+            Ok(Some(r.voxel_codes(depth)))
+        }
+    }
+}
+
+/// The colour packing of a conversion: parts keep raw colours, packed only
+/// when the parts are joined (the packing of a block must see the whole
+/// volume's colours in order).
+fn colour_error(opts: &ConvertOptions) -> Option<u8> {
+    if opts.region.is_some() {
+        None
+    } else {
+        opts.color_error
+    }
 }
 
 fn convert_voxels(
@@ -704,6 +775,7 @@ fn convert_voxels(
     let t = Instant::now();
     let settings = spill_settings(opts, list.depth, plan.run_budget)?;
     let mut sink = DagSink::new(list.depth, AttributeKind::VoxelCount, settings, scratch)?;
+    let kept = kept_codes(opts, list.depth)?;
     let mut i = 0;
     while i < list.codes.len() {
         let brick = list.codes[i] >> 6;
@@ -712,7 +784,9 @@ fn convert_voxels(
             mask |= 1 << (list.codes[i] & 63);
             i += 1;
         }
-        sink.push_brick(brick, mask)?;
+        if kept.as_ref().is_none_or(|k| k.contains(&(brick << 6))) {
+            sink.push_brick(brick, mask)?;
+        }
     }
     drop(list);
     let spinner = merge_spinner(opts);
@@ -751,6 +825,7 @@ fn convert_empty_mesh(
     summary.warnings.push(
         "the mesh has no triangles: the file holds the empty volume (root cube [0, 1]^3)".into(),
     );
+    kept_codes(opts, depth)?;
     let settings = spill_settings(opts, depth, 0)?;
     let sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
     let dag = sink.finish(|| 0, &|_| {})?;
@@ -926,7 +1001,19 @@ fn convert_mesh(
             None => "",
         }
     );
-    let bins = Bins::new(&snapped, depth, chunk_bits);
+    let kept = kept_codes(opts, depth)?;
+    let mut bins = Bins::new(&snapped, depth, chunk_bits);
+    if let (Some(k), SolidMode::Surface) = (&kept, solid) {
+        // A surface chunk's voxels depend on its triangles only: a region
+        // voxelizes the chunks that meet it. (The solid fill carries parity
+        // from chunk to chunk, so it voxelizes every chunk and keeps the
+        // region's bricks below.)
+        bins.retain(|code| {
+            let first = code << (3 * chunk_bits);
+            first < k.end && first + (1 << (3 * chunk_bits)) > k.start
+        });
+    }
+    let kept_bricks = kept.map(|k| (k.start >> 6)..(k.end >> 6));
     summary.bin_entries = bins.len() as u64;
     summary.load_seconds = t.elapsed().as_secs_f64();
     check_memory(limit, "binning triangles")?;
@@ -978,7 +1065,7 @@ fn convert_mesh(
     let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
     let mut colors = opts
         .colors
-        .then(|| ColourSink::new(scratch, plan.colour_cap, opts.color_error));
+        .then(|| ColourSink::new(scratch, plan.colour_cap, colour_error(opts)));
     let bar = if opts.progress && std::io::stderr().is_terminal() {
         let bar = ProgressBar::with_draw_target(
             Some(bins.codes.len() as u64),
@@ -1013,23 +1100,47 @@ fn convert_mesh(
             };
             for (i, out) in outs.iter().enumerate() {
                 let base = out.code << shift;
+                let whole = kept_bricks
+                    .as_ref()
+                    .is_none_or(|k| k.start <= base && base + (1 << shift) <= k.end);
+                let kept = |brick: u32| {
+                    kept_bricks
+                        .as_ref()
+                        .is_none_or(|k| k.contains(&(base | u64::from(brick))))
+                };
                 for &(brick, mask) in &out.bricks {
-                    sink.push_brick(base | u64::from(brick), mask)?;
+                    if whole || kept(brick) {
+                        sink.push_brick(base | u64::from(brick), mask)?;
+                    }
                 }
                 if let Some(colors) = &mut colors {
-                    if let Some(part) = textured.get(i) {
-                        colors.write(part)?;
-                        continue;
+                    let chunk: &[u8] = match textured.get(i) {
+                        Some(part) => part,
+                        None => {
+                            rgba.clear();
+                            for &t in &out.tags {
+                                rgba.extend_from_slice(&if t == NO_TAG {
+                                    DEFAULT_COLOR
+                                } else {
+                                    mesh.triangle_color(t as usize)
+                                });
+                            }
+                            &rgba
+                        }
+                    };
+                    if whole {
+                        colors.write(chunk)?;
+                    } else {
+                        // The colours follow the bricks' set voxels in order.
+                        let mut at = 0;
+                        for &(brick, mask) in &out.bricks {
+                            let n = 4 * mask.count_ones() as usize;
+                            if kept(brick) {
+                                colors.write(&chunk[at..at + n])?;
+                            }
+                            at += n;
+                        }
                     }
-                    rgba.clear();
-                    for &t in &out.tags {
-                        rgba.extend_from_slice(&if t == NO_TAG {
-                            DEFAULT_COLOR
-                        } else {
-                            mesh.triangle_color(t as usize)
-                        });
-                    }
-                    colors.write(&rgba)?;
                 }
             }
             let runs = sink.runs();
@@ -1080,12 +1191,16 @@ fn build_sorted(
 ) -> Result<(FinishedDag, Option<Colours>), ConvertError> {
     let settings = spill_settings(opts, depth, run_budget)?;
     let mut sink = DagSink::new(depth, AttributeKind::VoxelCount, settings, scratch)?;
-    let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap, opts.color_error));
+    let mut colors = colour_cap.map(|cap| ColourSink::new(scratch, cap, colour_error(opts)));
     let mut rgba: Vec<u8> = Vec::new();
     let mut brick = None;
     let mut mask = 0u64;
+    let kept = kept_codes(opts, depth)?;
     for v in voxels {
         let (code, colour) = v?;
+        if kept.as_ref().is_some_and(|k| !k.contains(&code)) {
+            continue;
+        }
         if brick != Some(code >> 6) {
             if let Some(b) = brick {
                 sink.push_brick(b, mask)?;

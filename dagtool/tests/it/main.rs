@@ -20,6 +20,7 @@ mod meshes;
 mod out_of_core;
 mod packed_colors;
 mod readme;
+mod regions;
 mod solid;
 mod surface;
 mod verify;

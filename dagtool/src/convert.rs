@@ -117,6 +117,9 @@ pub struct ConvertOptions {
     /// Build only this cell of the root cube, into a part (spec § 24); needs
     /// `bounds`, so that every part has the same root cube.
     pub region: Option<Region>,
+    /// More point clouds read after `input` as one (the tiles of a survey);
+    /// with `region`, only those whose declared bounds meet the cell are read.
+    pub extra_inputs: Vec<PathBuf>,
 }
 
 /// One line on a packed colour section: size per voxel, against raw RGB, and
@@ -180,6 +183,7 @@ impl ConvertOptions {
             bounds: None,
             point_radius: 0.0,
             region: None,
+            extra_inputs: Vec::new(),
         }
     }
 }
@@ -505,29 +509,37 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         )));
     }
     let format = detect_format(&opts.input, opts.format)?;
-    let mut summary = match format {
-        Source::VoxelList => convert_voxels(opts, limit, &scratch)?,
-        Source::Registered(format) => {
-            let options = crate::input::OpenOptions {
-                colors: opts.colors,
-            };
-            let open = || crate::input::open(&opts.input, format, &options);
-            match format.name {
-                // Formats that are meshes whatever their content load after
-                // the command line's checks.
-                "obj" | "stl" | "gltf" | "glb" => {
-                    convert_mesh(opts, limit, &scratch, || match open()? {
-                        crate::input::Input::Mesh(m) => Ok(*m),
-                        _ => Err(ConvertError::Input("not a mesh".into())),
-                    })?
-                }
-                _ => match open()? {
-                    crate::input::Input::Mesh(m) => convert_mesh(opts, limit, &scratch, || Ok(*m))?,
-                    crate::input::Input::Points(points) => {
-                        convert_points(opts, limit, &scratch, points)?
+    let mut summary = if !opts.extra_inputs.is_empty() {
+        convert_tiles(opts, limit, &scratch)?
+    } else {
+        match format {
+            Source::VoxelList => convert_voxels(opts, limit, &scratch)?,
+            Source::Registered(format) => {
+                let options = crate::input::OpenOptions {
+                    colors: opts.colors,
+                };
+                let open = || crate::input::open(&opts.input, format, &options);
+                match format.name {
+                    // Formats that are meshes whatever their content load after
+                    // the command line's checks.
+                    "obj" | "stl" | "gltf" | "glb" => {
+                        convert_mesh(opts, limit, &scratch, || match open()? {
+                            crate::input::Input::Mesh(m) => Ok(*m),
+                            _ => Err(ConvertError::Input("not a mesh".into())),
+                        })?
                     }
-                    crate::input::Input::Voxels(grid) => convert_grid(opts, limit, &scratch, grid)?,
-                },
+                    _ => match open()? {
+                        crate::input::Input::Mesh(m) => {
+                            convert_mesh(opts, limit, &scratch, || Ok(*m))?
+                        }
+                        crate::input::Input::Points(points) => {
+                            convert_points(opts, limit, &scratch, points)?
+                        }
+                        crate::input::Input::Voxels(grid) => {
+                            convert_grid(opts, limit, &scratch, grid)?
+                        }
+                    },
+                }
             }
         }
     };
@@ -540,6 +552,56 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     summary.cpu_seconds = process_cpu_seconds();
     summary.main_thread_cpu_seconds = thread_cpu_seconds();
     Ok(summary)
+}
+
+/// Converts several point clouds read as one (`input`, then
+/// `extra_inputs`); a region build opens every cloud's header but reads only
+/// those whose declared bounds, grown by the point radius, meet its cell.
+fn convert_tiles(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+) -> Result<ConvertSummary, ConvertError> {
+    let options = crate::input::OpenOptions {
+        colors: opts.colors,
+    };
+    let mut sources: Vec<Box<dyn crate::input::PointSource>> = Vec::new();
+    for path in std::iter::once(&opts.input).chain(&opts.extra_inputs) {
+        let format = match detect_format(path, opts.format)? {
+            Source::Registered(f) => f,
+            Source::VoxelList => {
+                return Err(ConvertError::Usage(format!(
+                    "{}: several inputs must all be point clouds (LAS, LAZ or PLY tiles), not a voxel list",
+                    path.display()
+                )));
+            }
+        };
+        match crate::input::open(path, format, &options)? {
+            crate::input::Input::Points(p) => sources.push(p),
+            _ => {
+                return Err(ConvertError::Usage(format!(
+                    "{}: several inputs must all be point clouds (LAS, LAZ or PLY tiles)",
+                    path.display()
+                )));
+            }
+        }
+    }
+    let cell = match (opts.region, opts.bounds, opts.depth) {
+        (Some(r), Some(b), Some(_)) => {
+            let side = b.size / f64::from(1u32 << r.level);
+            let lo = [0, 1, 2].map(|a| b.min[a] + f64::from(r.cell[a]) * side);
+            Some((lo, lo.map(|c| c + side)))
+        }
+        _ => None,
+    };
+    let grow = opts.point_radius;
+    let meets = move |tlo: [f64; 3], thi: [f64; 3]| {
+        cell.is_none_or(|(lo, hi): ([f64; 3], [f64; 3])| {
+            (0..3).all(|a| tlo[a] - grow <= hi[a] && lo[a] <= thi[a] + grow)
+        })
+    };
+    let chain = crate::input::ChainedPoints::new(sources, Some(&meets));
+    convert_points(opts, limit, scratch, Box::new(chain))
 }
 
 /// Checks the peak memory so far against the limit: loading the input is
@@ -1364,7 +1426,9 @@ fn convert_points(
             points.count()
         )));
     }
-    if outside == read {
+    // (A region build that read no tile, none meeting its cell, is an
+    // empty part.)
+    if outside == read && !(read == 0 && opts.region.is_some() && !opts.extra_inputs.is_empty()) {
         return Err(ConvertError::Input(format!(
             "all {read} points lie outside the root cube"
         )));

@@ -327,8 +327,10 @@ enum FormatArg {
 #[derive(Args, Debug)]
 struct ConvertArgs {
     /// Input: a mesh (.obj .gltf .glb .ply .stl), a point cloud (.ply .las
-    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list.
-    input: PathBuf,
+    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list; or
+    /// several point clouds (tiles), read as one in this order.
+    #[arg(required = true, num_args = 1..)]
+    input: Vec<PathBuf>,
     /// Output .vdag file.
     #[arg(short, long)]
     output: PathBuf,
@@ -429,7 +431,8 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
         })?),
         None => None,
     };
-    let mut opts = ConvertOptions::new(&args.input, &args.output, depth);
+    let mut opts = ConvertOptions::new(&args.input[0], &args.output, depth);
+    opts.extra_inputs = args.input[1..].to_vec();
     opts.format = format_of(args.input_format);
     opts.bounds = args.bounds.as_deref().map(Bounds::parse).transpose()?;
     opts.point_radius = args.point_radius;
@@ -465,7 +468,7 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
             .map_err(|e| ConvertError::Usage(format!("cannot start {n} threads: {e}")))?,
         None => {}
     }
-    let summary = convert::convert(&opts).map_err(|e| name_the_input(e, &args.input))?;
+    let summary = convert::convert(&opts).map_err(|e| name_the_input(e, &args.input[0]))?;
     if !args.quiet {
         print_stdout(&format!("{}\n", summary.render(&args.output)))?;
     }

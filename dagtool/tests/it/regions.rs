@@ -450,3 +450,94 @@ fn region_command_line_errors() {
         assert!(!out.exists());
     }
 }
+
+/// Writes a LAS tile of coloured points.
+fn las_tile(path: &Path, points: &[[f64; 3]], seed: u16) {
+    let mut builder = las::Builder::from((1, 2));
+    builder.point_format = las::point::Format::new(2).unwrap();
+    let header = builder.into_header().unwrap();
+    let mut writer = las::Writer::from_path(path, header).unwrap();
+    for (i, p) in points.iter().enumerate() {
+        let i = i as u16;
+        writer
+            .write_point(las::Point {
+                x: p[0],
+                y: p[1],
+                z: p[2],
+                color: Some(las::Color::new(
+                    i.wrapping_mul(977),
+                    seed.wrapping_mul(20000),
+                    i.wrapping_mul(131),
+                )),
+                ..Default::default()
+            })
+            .unwrap();
+    }
+    writer.close().unwrap();
+}
+
+#[test]
+fn las_tiles_convert_as_one_cloud_and_regions_read_only_theirs() {
+    let dir = tempfile::tempdir().unwrap();
+    // Four tiles, the quadrants of x and y; each region of level 1 meets
+    // only the tiles of its quadrant.
+    let mut tiles = Vec::new();
+    for (q, (sx, sy)) in [(1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0)]
+        .into_iter()
+        .enumerate()
+    {
+        let pts: Vec<[f64; 3]> = (0..800)
+            .map(|i| {
+                let t = f64::from(i) * 0.011 + q as f64;
+                [
+                    sx * (0.05 + 0.9 * (t * 1.7).sin().abs()),
+                    sy * (0.05 + 0.9 * (t * 0.9).cos().abs()),
+                    0.8 * (t * 2.3).sin(),
+                ]
+            })
+            .collect();
+        let path = dir.path().join(format!("tile{q}.las"));
+        las_tile(&path, &pts, q as u16);
+        tiles.push(path);
+    }
+    let mut base = options(&tiles[0], &dir.path().join("whole.vdag"), 6, "-1,-1,-1,2");
+    base.extra_inputs = tiles[1..].to_vec();
+    base.colors = true;
+    convert(&base).unwrap();
+    let whole = std::fs::read(&base.output).unwrap();
+    let mut parts = Vec::new();
+    for r in Region::all(1) {
+        let mut o = base.clone();
+        o.region = Some(r);
+        o.output = dir.path().join(format!("p{}.part", r.index()));
+        let s = convert(&o).unwrap();
+        assert!(
+            s.input.contains("3 more left out"),
+            "region {r} read more than its tile: {}",
+            s.input
+        );
+        parts.push(o.output);
+    }
+    assert_eq!(merged(&parts, &dir.path().join("m.vdag")), whole);
+    // The command line reads several tiles as one cloud too.
+    let cli = dir.path().join("cli.vdag");
+    let mut args = vec!["convert"];
+    args.extend(tiles.iter().map(|t| t.to_str().unwrap()));
+    args.extend([
+        "-o",
+        cli.to_str().unwrap(),
+        "--depth",
+        "6",
+        "--bounds",
+        "-1,-1,-1,2",
+        "--colors",
+        "-q",
+    ]);
+    let out = run(&args);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(std::fs::read(&cli).unwrap(), whole);
+}

@@ -120,6 +120,47 @@ pub struct ConvertOptions {
     /// More point clouds read after `input` as one (the tiles of a survey);
     /// with `region`, only those whose declared bounds meet the cell are read.
     pub extra_inputs: Vec<PathBuf>,
+    /// Told how the conversion proceeds, for callers without a terminal
+    /// (the Python package's `progress` callable); `None`: nobody is.
+    pub progress_hook: Option<ProgressHook>,
+}
+
+/// A step of a conversion, as [`ProgressHook`] is told it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvertProgress {
+    /// Voxelizing a mesh: `done` of `total` surface chunks (called from the
+    /// voxelizing threads, as chunks finish).
+    Voxelizing {
+        /// Chunks voxelized.
+        done: u64,
+        /// Chunks to voxelize.
+        total: u64,
+    },
+    /// Every voxel is in the builder; the DAG is being finished (in memory,
+    /// or by merging the spilled runs level by level).
+    Finishing,
+    /// The output file is in place.
+    Written,
+}
+
+/// A callback told each [`ConvertProgress`] step; it may be called from any
+/// thread, so it must be `Send + Sync`.
+#[derive(Clone)]
+pub struct ProgressHook(pub std::sync::Arc<dyn Fn(ConvertProgress) + Send + Sync>);
+
+impl std::fmt::Debug for ProgressHook {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ProgressHook(..)")
+    }
+}
+
+impl ConvertOptions {
+    /// Tells the hook, if any, of `step`.
+    fn report(&self, step: ConvertProgress) {
+        if let Some(hook) = &self.progress_hook {
+            (hook.0)(step);
+        }
+    }
 }
 
 /// One line on a packed colour section: size per voxel, against raw RGB, and
@@ -184,6 +225,7 @@ impl ConvertOptions {
             point_radius: 0.0,
             region: None,
             extra_inputs: Vec::new(),
+            progress_hook: None,
         }
     }
 }
@@ -384,6 +426,7 @@ impl ConvertSummary {
 /// A spinner while the DAG is finished (in memory, or by merging the spilled
 /// runs level by level), on a terminal with progress.
 fn merge_spinner(opts: &ConvertOptions) -> ProgressBar {
+    opts.report(ConvertProgress::Finishing);
     if !(opts.progress && std::io::stderr().is_terminal()) {
         return ProgressBar::hidden();
     }
@@ -551,6 +594,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     summary.peak_rss = peak_rss();
     summary.cpu_seconds = process_cpu_seconds();
     summary.main_thread_cpu_seconds = thread_cpu_seconds();
+    opts.report(ConvertProgress::Written);
     Ok(summary)
 }
 
@@ -1149,7 +1193,13 @@ fn convert_mesh(
         &snapped,
         &bins,
         &cfg,
-        &|done| bar.set_position(done),
+        &|done| {
+            bar.set_position(done);
+            opts.report(ConvertProgress::Voxelizing {
+                done,
+                total: bins.codes.len() as u64,
+            });
+        },
         |outs: Vec<ChunkOutput>| -> Result<(), ConvertError> {
             // Textured colours need a closest point per voxel: found for the
             // batch's chunks in parallel, written below in order.

@@ -19,6 +19,7 @@ mod mapped_files;
 mod meshes;
 mod out_of_core;
 mod packed_colors;
+mod progress;
 mod readme;
 mod regions;
 mod solid;

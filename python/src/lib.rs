@@ -1,17 +1,20 @@
 //! `vdag._vdag`: the native half of the Python package `vdag` (python/vdag/).
 //!
-//! The Python package re-exports what is registered here; its `.pyi` stubs
+//! The Python package re-exports what is registered here (the submodules
+//! below are private: their items are the module's functions); its `.pyi` stubs
 //! (python/vdag/*.pyi) describe every class and function for type checkers,
 //! and the docstrings below are what `help()` shows. Each submodule wraps
 //! one part of the Rust workspace:
 //!
-//! - [`file`]: `open` and the `Dag` class (header, level table, voxels,
+//! - `file`: `open` and the `Dag` class (header, level table, voxels,
 //!   colours, point queries) over `dagfmt`'s memory-mapped reader;
-//! - [`trace`]: `Dag.trace`, numpy rays through `dagtrace`'s batch API (CPU,
+//! - `trace`: `Dag.trace`, numpy rays through `dagtrace`'s batch API (CPU,
 //!   all cores, without the GIL) or its GPU tracer;
-//! - [`render`]: `Dag.render` and `render`, the images of `dagtrace render`;
-//! - [`convert`]: `convert`, `dagtool convert` with a progress callable;
-//! - [`errors`]: the exceptions (defined in Python, `vdag/errors.py`), raised
+//! - `render`: `Dag.render` and `render`, the images of `dagtrace render`;
+//! - `convert`: `convert`, `dagtool convert` with a progress callable;
+//! - `region`: `convert_region`, `merge` and `regions`, the region builds
+//!   and merges of `dagtool` (spec § 24) that `vdag.distributed` runs;
+//! - `errors`: the exceptions (defined in Python, `vdag/errors.py`), raised
 //!   with the spec's error codes.
 #![deny(missing_docs)]
 

@@ -5,7 +5,7 @@
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 cases="$here/../conformance/cases"
-for target in reader validator transport batch obj_import voxel_list gltf_import ply_import stl_import las_import vox_import binvox_import; do
+for target in reader validator transport batch obj_import voxel_list gltf_import ply_import stl_import las_import vox_import binvox_import part_placement; do
     mkdir -p "$here/corpus/$target"
     for dir in "$here/seeds/$target" "$here/regressions/$target"; do
         [ -d "$dir" ] && find "$dir" -type f ! -name README.md -exec cp {} "$here/corpus/$target/" \;

@@ -2,6 +2,7 @@
 
 use std::fmt::Write as _;
 use std::io::IsTerminal;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -19,6 +20,7 @@ use crate::external::{
 use crate::mesh::{DEFAULT_COLOR, GridMapping, Mesh, SnappedMesh};
 use crate::output::{check_output, write_atomic};
 use crate::pipeline::{self, Bins, ChunkOutput, SolidMode, VoxelizeConfig};
+use crate::region::{ColourMode, Placement, Region};
 use crate::sysinfo::{
     current_rss, human_bytes, peak_rss, process_cpu_seconds, thread_cpu_seconds, total_memory,
 };
@@ -118,6 +120,53 @@ pub struct ConvertOptions {
     /// The major format version written: 1 (default) or 2 (spec §23: the
     /// 1.0 DAG is built as usual, then upgraded in memory).
     pub format_version: u16,
+    /// Build only this cell of the root cube, into a part (spec § 24); needs
+    /// `bounds`, so that every part has the same root cube.
+    pub region: Option<Region>,
+    /// More point clouds read after `input` as one (the tiles of a survey);
+    /// with `region`, only those whose declared bounds meet the cell are read.
+    pub extra_inputs: Vec<PathBuf>,
+    /// Told how the conversion proceeds, for callers without a terminal
+    /// (the Python package's `progress` callable); `None`: nobody is.
+    pub progress_hook: Option<ProgressHook>,
+}
+
+/// A step of a conversion, as [`ProgressHook`] is told it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvertProgress {
+    /// Voxelizing a mesh: `done` of `total` surface chunks (called from the
+    /// voxelizing threads, as chunks finish).
+    Voxelizing {
+        /// Chunks voxelized.
+        done: u64,
+        /// Chunks to voxelize.
+        total: u64,
+    },
+    /// Every voxel is in the builder; the DAG is being finished (in memory,
+    /// or by merging the spilled runs level by level).
+    Finishing,
+    /// The output file is in place.
+    Written,
+}
+
+/// A callback told each [`ConvertProgress`] step; it may be called from any
+/// thread, so it must be `Send + Sync`.
+#[derive(Clone)]
+pub struct ProgressHook(pub std::sync::Arc<dyn Fn(ConvertProgress) + Send + Sync>);
+
+impl std::fmt::Debug for ProgressHook {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ProgressHook(..)")
+    }
+}
+
+impl ConvertOptions {
+    /// Tells the hook, if any, of `step`.
+    fn report(&self, step: ConvertProgress) {
+        if let Some(hook) = &self.progress_hook {
+            (hook.0)(step);
+        }
+    }
 }
 
 /// One line on a packed colour section: size per voxel, against raw RGB, and
@@ -198,6 +247,9 @@ impl ConvertOptions {
             point_radius: 0.0,
             attributes: AttributeKind::VoxelCount,
             format_version: 1,
+            region: None,
+            extra_inputs: Vec::new(),
+            progress_hook: None,
         }
     }
 }
@@ -409,6 +461,7 @@ impl ConvertSummary {
 /// A spinner while the DAG is finished (in memory, or by merging the spilled
 /// runs level by level), on a terminal with progress.
 fn merge_spinner(opts: &ConvertOptions) -> ProgressBar {
+    opts.report(ConvertProgress::Finishing);
     if !(opts.progress && std::io::stderr().is_terminal()) {
         return ProgressBar::hidden();
     }
@@ -493,6 +546,11 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
             "--colors needs the voxel-count attributes (they index the colours): drop --attributes none".into(),
         ));
     }
+    if opts.region.is_some() && opts.format_version != 1 {
+        return Err(ConvertError::Usage(
+            "--region writes a part, which is format 1 (spec §24): drop --format-version 2, merge the parts, then `dagtool upgrade` the merged file".into(),
+        ));
+    }
     match opts.format_version {
         1 => convert_v1(opts),
         2 => convert_v2(opts),
@@ -540,6 +598,16 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
 
 fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     let start = Instant::now();
+    if let Some(r) = opts.region {
+        if opts.bounds.is_none() {
+            return Err(ConvertError::Usage(format!(
+                "--region {r} needs --bounds: every part of one volume must have the same root cube"
+            )));
+        }
+        if let Some(d) = opts.depth {
+            r.check(d)?;
+        }
+    }
     check_output(&opts.output, opts.force)?;
     let meta = std::fs::metadata(&opts.input)
         .map_err(|e| ConvertError::io(format!("cannot open input {}", opts.input.display()), e))?;
@@ -575,29 +643,37 @@ fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         )));
     }
     let format = detect_format(&opts.input, opts.format)?;
-    let mut summary = match format {
-        Source::VoxelList => convert_voxels(opts, limit, &scratch)?,
-        Source::Registered(format) => {
-            let options = crate::input::OpenOptions {
-                colors: opts.colors,
-            };
-            let open = || crate::input::open(&opts.input, format, &options);
-            match format.name {
-                // Formats that are meshes whatever their content load after
-                // the command line's checks.
-                "obj" | "stl" | "gltf" | "glb" => {
-                    convert_mesh(opts, limit, &scratch, || match open()? {
-                        crate::input::Input::Mesh(m) => Ok(*m),
-                        _ => Err(ConvertError::Input("not a mesh".into())),
-                    })?
-                }
-                _ => match open()? {
-                    crate::input::Input::Mesh(m) => convert_mesh(opts, limit, &scratch, || Ok(*m))?,
-                    crate::input::Input::Points(points) => {
-                        convert_points(opts, limit, &scratch, points)?
+    let mut summary = if !opts.extra_inputs.is_empty() {
+        convert_tiles(opts, limit, &scratch)?
+    } else {
+        match format {
+            Source::VoxelList => convert_voxels(opts, limit, &scratch)?,
+            Source::Registered(format) => {
+                let options = crate::input::OpenOptions {
+                    colors: opts.colors,
+                };
+                let open = || crate::input::open(&opts.input, format, &options);
+                match format.name {
+                    // Formats that are meshes whatever their content load after
+                    // the command line's checks.
+                    "obj" | "stl" | "gltf" | "glb" => {
+                        convert_mesh(opts, limit, &scratch, || match open()? {
+                            crate::input::Input::Mesh(m) => Ok(*m),
+                            _ => Err(ConvertError::Input("not a mesh".into())),
+                        })?
                     }
-                    crate::input::Input::Voxels(grid) => convert_grid(opts, limit, &scratch, grid)?,
-                },
+                    _ => match open()? {
+                        crate::input::Input::Mesh(m) => {
+                            convert_mesh(opts, limit, &scratch, || Ok(*m))?
+                        }
+                        crate::input::Input::Points(points) => {
+                            convert_points(opts, limit, &scratch, points)?
+                        }
+                        crate::input::Input::Voxels(grid) => {
+                            convert_grid(opts, limit, &scratch, grid)?
+                        }
+                    },
+                }
             }
         }
     };
@@ -609,7 +685,58 @@ fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     summary.peak_rss = peak_rss();
     summary.cpu_seconds = process_cpu_seconds();
     summary.main_thread_cpu_seconds = thread_cpu_seconds();
+    opts.report(ConvertProgress::Written);
     Ok(summary)
+}
+
+/// Converts several point clouds read as one (`input`, then
+/// `extra_inputs`); a region build opens every cloud's header but reads only
+/// those whose declared bounds, grown by the point radius, meet its cell.
+fn convert_tiles(
+    opts: &ConvertOptions,
+    limit: u64,
+    scratch: &Scratch,
+) -> Result<ConvertSummary, ConvertError> {
+    let options = crate::input::OpenOptions {
+        colors: opts.colors,
+    };
+    let mut sources: Vec<Box<dyn crate::input::PointSource>> = Vec::new();
+    for path in std::iter::once(&opts.input).chain(&opts.extra_inputs) {
+        let format = match detect_format(path, opts.format)? {
+            Source::Registered(f) => f,
+            Source::VoxelList => {
+                return Err(ConvertError::Usage(format!(
+                    "{}: several inputs must all be point clouds (LAS, LAZ or PLY tiles), not a voxel list",
+                    path.display()
+                )));
+            }
+        };
+        match crate::input::open(path, format, &options)? {
+            crate::input::Input::Points(p) => sources.push(p),
+            _ => {
+                return Err(ConvertError::Usage(format!(
+                    "{}: several inputs must all be point clouds (LAS, LAZ or PLY tiles)",
+                    path.display()
+                )));
+            }
+        }
+    }
+    let cell = match (opts.region, opts.bounds, opts.depth) {
+        (Some(r), Some(b), Some(_)) => {
+            let side = b.size / f64::from(1u32 << r.level);
+            let lo = [0, 1, 2].map(|a| b.min[a] + f64::from(r.cell[a]) * side);
+            Some((lo, lo.map(|c| c + side)))
+        }
+        _ => None,
+    };
+    let grow = opts.point_radius;
+    let meets = move |tlo: [f64; 3], thi: [f64; 3]| {
+        cell.is_none_or(|(lo, hi): ([f64; 3], [f64; 3])| {
+            (0..3).all(|a| tlo[a] - grow <= hi[a] && lo[a] <= thi[a] + grow)
+        })
+    };
+    let chain = crate::input::ChainedPoints::new(sources, Some(&meets));
+    convert_points(opts, limit, scratch, Box::new(chain))
 }
 
 /// Checks the peak memory so far against the limit: loading the input is
@@ -728,16 +855,19 @@ fn write_output(
     summary: &mut ConvertSummary,
 ) -> Result<(), ConvertError> {
     let t = Instant::now();
-    let mut sections = dag.level_sections();
-    let levels = sections.len();
-    sections.extend(colors.map(Colours::section));
-    let layout = FileLayout::new(header, sections).map_err(build_error)?;
-    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| {
-        layout.write_to(w, |index, sink| match index.checked_sub(levels) {
-            None => dag.emit_level(index, sink),
-            Some(_) => colors.expect("a colour section").emit(sink),
-        })
-    })?;
+    let placement = opts.region.map(|r| Placement {
+        level: r.level,
+        cells: r.index()..r.index() + 1,
+        colours: ColourMode::of(colors.is_some(), opts.color_error),
+    });
+    summary.file_bytes = write_dag(
+        &opts.output,
+        opts.force,
+        dag,
+        colors,
+        header,
+        placement.as_ref(),
+    )?;
     summary.write_seconds = t.elapsed().as_secs_f64();
     summary.voxels = dag.voxel_count();
     summary.levels = dag.level_stats();
@@ -745,6 +875,58 @@ fn write_output(
     summary.colors_spilled = colors.is_some_and(Colours::spilled);
     summary.colors_packed = colors.and_then(Colours::packed);
     Ok(())
+}
+
+/// Writes a finished DAG, its colours and, for a part, its placement
+/// (spec § 24) atomically to `path`; returns the bytes written.
+pub(crate) fn write_dag(
+    path: &Path,
+    force: bool,
+    dag: &FinishedDag,
+    colors: Option<&Colours>,
+    header: FileHeader,
+    placement: Option<&Placement>,
+) -> Result<u64, ConvertError> {
+    let mut sections = dag.level_sections();
+    let levels = sections.len();
+    sections.extend(colors.map(Colours::section));
+    let coloured = sections.len();
+    sections.extend(placement.map(Placement::section));
+    let layout = FileLayout::new(header, sections).map_err(build_error)?;
+    write_atomic(path, force, |w| {
+        layout.write_to(w, |index, sink| {
+            if index < levels {
+                dag.emit_level(index, sink)
+            } else if index < coloured {
+                colors.expect("a colour section").emit(sink)
+            } else {
+                sink(&placement.expect("a placement").to_bytes())
+            }
+        })
+    })
+}
+
+/// The Morton codes of the voxels a conversion keeps: those of the region,
+/// or all (`None`). Checks the region against the depth.
+fn kept_codes(opts: &ConvertOptions, depth: u8) -> Result<Option<Range<u64>>, ConvertError> {
+    match opts.region {
+        None => Ok(None),
+        Some(r) => {
+            r.check(depth)?;
+            Ok(Some(r.voxel_codes(depth)))
+        }
+    }
+}
+
+/// The colour packing of a conversion: parts keep raw colours, packed only
+/// when the parts are joined (the packing of a block must see the whole
+/// volume's colours in order).
+fn colour_error(opts: &ConvertOptions) -> Option<u8> {
+    if opts.region.is_some() {
+        None
+    } else {
+        opts.color_error
+    }
 }
 
 fn convert_voxels(
@@ -790,6 +972,7 @@ fn convert_voxels(
     let t = Instant::now();
     let settings = spill_settings(opts, list.depth, plan.run_budget)?;
     let mut sink = DagSink::new(list.depth, opts.attributes, settings, scratch)?;
+    let kept = kept_codes(opts, list.depth)?;
     let mut i = 0;
     while i < list.codes.len() {
         let brick = list.codes[i] >> 6;
@@ -798,7 +981,9 @@ fn convert_voxels(
             mask |= 1 << (list.codes[i] & 63);
             i += 1;
         }
-        sink.push_brick(brick, mask)?;
+        if kept.as_ref().is_none_or(|k| k.contains(&(brick << 6))) {
+            sink.push_brick(brick, mask)?;
+        }
     }
     drop(list);
     let spinner = merge_spinner(opts);
@@ -837,6 +1022,7 @@ fn convert_empty_mesh(
     summary.warnings.push(
         "the mesh has no triangles: the file holds the empty volume (root cube [0, 1]^3)".into(),
     );
+    kept_codes(opts, depth)?;
     let settings = spill_settings(opts, depth, 0)?;
     let sink = DagSink::new(depth, opts.attributes, settings, scratch)?;
     let dag = sink.finish(|| 0, &|_| {})?;
@@ -1012,7 +1198,19 @@ fn convert_mesh(
             None => "",
         }
     );
-    let bins = Bins::new(&snapped, depth, chunk_bits);
+    let kept = kept_codes(opts, depth)?;
+    let mut bins = Bins::new(&snapped, depth, chunk_bits);
+    if let (Some(k), SolidMode::Surface) = (&kept, solid) {
+        // A surface chunk's voxels depend on its triangles only: a region
+        // voxelizes the chunks that meet it. (The solid fill carries parity
+        // from chunk to chunk, so it voxelizes every chunk and keeps the
+        // region's bricks below.)
+        bins.retain(|code| {
+            let first = code << (3 * chunk_bits);
+            first < k.end && first + (1 << (3 * chunk_bits)) > k.start
+        });
+    }
+    let kept_bricks = kept.map(|k| (k.start >> 6)..(k.end >> 6));
     summary.bin_entries = bins.len() as u64;
     summary.load_seconds = t.elapsed().as_secs_f64();
     check_memory(limit, "binning triangles")?;
@@ -1064,7 +1262,7 @@ fn convert_mesh(
     let mut sink = DagSink::new(depth, opts.attributes, settings, scratch)?;
     let mut colors = opts
         .colors
-        .then(|| ColourSink::new(scratch, plan.colour_cap, opts.color_error));
+        .then(|| ColourSink::new(scratch, plan.colour_cap, colour_error(opts)));
     let bar = if opts.progress && std::io::stderr().is_terminal() {
         let bar = ProgressBar::with_draw_target(
             Some(bins.codes.len() as u64),
@@ -1086,7 +1284,13 @@ fn convert_mesh(
         &snapped,
         &bins,
         &cfg,
-        &|done| bar.set_position(done),
+        &|done| {
+            bar.set_position(done);
+            opts.report(ConvertProgress::Voxelizing {
+                done,
+                total: bins.codes.len() as u64,
+            });
+        },
         |outs: Vec<ChunkOutput>| -> Result<(), ConvertError> {
             // Textured colours need a closest point per voxel: found for the
             // batch's chunks in parallel, written below in order.
@@ -1099,23 +1303,47 @@ fn convert_mesh(
             };
             for (i, out) in outs.iter().enumerate() {
                 let base = out.code << shift;
+                let whole = kept_bricks
+                    .as_ref()
+                    .is_none_or(|k| k.start <= base && base + (1 << shift) <= k.end);
+                let kept = |brick: u32| {
+                    kept_bricks
+                        .as_ref()
+                        .is_none_or(|k| k.contains(&(base | u64::from(brick))))
+                };
                 for &(brick, mask) in &out.bricks {
-                    sink.push_brick(base | u64::from(brick), mask)?;
+                    if whole || kept(brick) {
+                        sink.push_brick(base | u64::from(brick), mask)?;
+                    }
                 }
                 if let Some(colors) = &mut colors {
-                    if let Some(part) = textured.get(i) {
-                        colors.write(part)?;
-                        continue;
+                    let chunk: &[u8] = match textured.get(i) {
+                        Some(part) => part,
+                        None => {
+                            rgba.clear();
+                            for &t in &out.tags {
+                                rgba.extend_from_slice(&if t == NO_TAG {
+                                    DEFAULT_COLOR
+                                } else {
+                                    mesh.triangle_color(t as usize)
+                                });
+                            }
+                            &rgba
+                        }
+                    };
+                    if whole {
+                        colors.write(chunk)?;
+                    } else {
+                        // The colours follow the bricks' set voxels in order.
+                        let mut at = 0;
+                        for &(brick, mask) in &out.bricks {
+                            let n = 4 * mask.count_ones() as usize;
+                            if kept(brick) {
+                                colors.write(&chunk[at..at + n])?;
+                            }
+                            at += n;
+                        }
                     }
-                    rgba.clear();
-                    for &t in &out.tags {
-                        rgba.extend_from_slice(&if t == NO_TAG {
-                            DEFAULT_COLOR
-                        } else {
-                            mesh.triangle_color(t as usize)
-                        });
-                    }
-                    colors.write(&rgba)?;
                 }
             }
             let runs = sink.runs();
@@ -1170,8 +1398,12 @@ fn build_sorted(
     let mut rgba: Vec<u8> = Vec::new();
     let mut brick = None;
     let mut mask = 0u64;
+    let kept = kept_codes(opts, depth)?;
     for v in voxels {
         let (code, colour) = v?;
+        if kept.as_ref().is_some_and(|k| !k.contains(&code)) {
+            continue;
+        }
         if brick != Some(code >> 6) {
             if let Some(b) = brick {
                 sink.push_brick(b, mask)?;
@@ -1335,7 +1567,9 @@ fn convert_points(
             points.count()
         )));
     }
-    if outside == read {
+    // (A region build that read no tile, none meeting its cell, is an
+    // empty part.)
+    if outside == read && !(read == 0 && opts.region.is_some() && !opts.extra_inputs.is_empty()) {
         return Err(ConvertError::Input(format!(
             "all {read} points lie outside the root cube"
         )));

@@ -1080,6 +1080,195 @@ impl RunFiles {
     }
 }
 
+/// Joins DAGs given as runs from outside the converter (the parts of a
+/// region build, [`crate::merge`]) with the same level merge as a spilled
+/// conversion: each run is a Morton range of complete level-`split`
+/// subtrees, given as its distinct records of levels `split ..= D − 2` with
+/// run-local ids (first-seen order) and its roots; runs come in increasing
+/// Morton order. The result is the file one in-memory build of all the runs'
+/// voxels makes, byte for byte.
+#[derive(Debug)]
+pub struct RunMerge {
+    depth: u8,
+    attributes: AttributeKind,
+    scratch: Scratch,
+    files: RunFiles,
+    /// Records per level `split ..= leaf` of the run being given.
+    nodes: Vec<u64>,
+    roots: u64,
+    last_code: Option<u64>,
+    forced_buckets: Option<u32>,
+}
+
+impl RunMerge {
+    /// A merge of depth-`depth` runs split at level `split` (1 ..= D − 2),
+    /// with temporary files in `scratch`; `buckets` forces the number of
+    /// buckets of every level (testing).
+    pub fn new(
+        depth: u8,
+        attributes: AttributeKind,
+        split: u8,
+        scratch: &Scratch,
+        buckets: Option<u32>,
+    ) -> Result<Self, ConvertError> {
+        if depth < 3 || !(1..=depth - 2).contains(&split) {
+            return Err(ConvertError::Usage(format!(
+                "split level {split} is outside 1..={} for depth {depth}",
+                depth.saturating_sub(2)
+            )));
+        }
+        let files = RunFiles::new(scratch, depth, split).map_err(|e| scratch.error(e))?;
+        Ok(RunMerge {
+            depth,
+            attributes,
+            scratch: scratch.clone(),
+            nodes: vec![0; usize::from(depth - 2 - split) + 1],
+            files,
+            roots: 0,
+            last_code: None,
+            forced_buckets: buckets,
+        })
+    }
+
+    /// The split level.
+    pub fn split_level(&self) -> u8 {
+        self.files.split
+    }
+
+    /// Adds the next record of interior `level` (`split ..= D − 3`) of the
+    /// current run: its header word and its children's run-local ids.
+    pub fn push_node(
+        &mut self,
+        level: u8,
+        header: u32,
+        children: &[u32],
+    ) -> Result<(), ConvertError> {
+        let (split, leaf) = (self.files.split, self.files.leaf);
+        if !(split..leaf).contains(&level)
+            || (header & 0xFF).count_ones() as usize != children.len()
+        {
+            return Err(ConvertError::Input(format!(
+                "a record of level {level} with header {header:#x} and {} children does not fit levels {split}..{leaf}",
+                children.len()
+            )));
+        }
+        let i = usize::from(level - split);
+        let out = &mut self.files.levels[i];
+        out.push(header)
+            .and_then(|()| out.extend(children))
+            .map_err(|e| self.scratch.error(e))?;
+        self.nodes[i] += 1;
+        Ok(())
+    }
+
+    /// Adds the next leaf mask of the current run.
+    pub fn push_leaf(&mut self, mask: u64) -> Result<(), ConvertError> {
+        let out = self.files.levels.last_mut().expect("the leaf level");
+        out.push(mask as u32)
+            .and_then(|()| out.push((mask >> 32) as u32))
+            .map_err(|e| self.scratch.error(e))?;
+        *self.nodes.last_mut().expect("the leaf level") += 1;
+        Ok(())
+    }
+
+    /// Adds a root of the current run: the Morton code of its level-`split`
+    /// cell (strictly increasing over all runs), its run-local id and its
+    /// voxel count.
+    pub fn push_root(&mut self, code: u64, id: u32, count: u64) -> Result<(), ConvertError> {
+        if self.last_code.is_some_and(|c| c >= code) || u64::from(id) >= self.nodes[0] {
+            return Err(ConvertError::Input(format!(
+                "subtree {code} (id {id}) is out of Morton order or refers to no record"
+            )));
+        }
+        self.last_code = Some(code);
+        self.files
+            .roots
+            .extend(&[
+                code as u32,
+                (code >> 32) as u32,
+                id,
+                count as u32,
+                (count >> 32) as u32,
+            ])
+            .map_err(|e| self.scratch.error(e))?;
+        self.roots += 1;
+        Ok(())
+    }
+
+    /// Ends the current run (nothing happens for a run without roots, which
+    /// must then have no records either).
+    pub fn end_run(&mut self) -> Result<(), ConvertError> {
+        if self.roots == 0 {
+            if self.nodes.iter().any(|&n| n > 0) {
+                return Err(ConvertError::Input(
+                    "a run has records but no subtree roots".into(),
+                ));
+            }
+            return Ok(());
+        }
+        self.files.runs.push(RunInfo {
+            nodes: std::mem::replace(&mut self.nodes, vec![0; self.files.levels.len()]),
+            roots: std::mem::take(&mut self.roots),
+        });
+        Ok(())
+    }
+
+    /// Runs given so far.
+    pub fn runs(&self) -> usize {
+        self.files.runs.len()
+    }
+
+    /// Merges the runs within `budget` bytes.
+    pub fn finish(
+        mut self,
+        budget: u64,
+        progress: &dyn Fn(&str),
+    ) -> Result<FinishedDag, ConvertError> {
+        self.end_run()?;
+        let t = std::time::Instant::now();
+        if self.files.runs.is_empty() {
+            // No voxels: the empty volume, as an in-memory build makes it.
+            let built = DagBuilder::new(self.depth, self.attributes)
+                .and_then(DagBuilder::finish)
+                .map_err(build_error)?;
+            return Ok(FinishedDag {
+                inner: Inner::InCore(built),
+                cells: Vec::new(),
+                report: SpillReport::default(),
+            });
+        }
+        let RunMerge {
+            depth,
+            attributes,
+            scratch,
+            files,
+            forced_buckets,
+            ..
+        } = self;
+        let split = files.split;
+        let (runs, levels) = files.finish().map_err(|e| scratch.error(e))?;
+        let merger = Merger {
+            scratch: &scratch,
+            depth,
+            attributes,
+            split,
+            budget: budget.max(MIN_MERGE_BUDGET),
+            forced_buckets,
+            runs: &runs,
+        };
+        let (external, max_buckets) = merger.run(levels, progress)?;
+        Ok(FinishedDag {
+            inner: Inner::External(external),
+            cells: Vec::new(),
+            report: SpillReport {
+                runs: runs.runs.len() as u64,
+                max_buckets,
+                merge_seconds: t.elapsed().as_secs_f64(),
+            },
+        })
+    }
+}
+
 #[derive(Debug)]
 struct SpilledRuns {
     split: u8,

@@ -17,6 +17,11 @@
 //!   is consistent: meshes pass on to the checks of [`obj_import`], point
 //!   clouds have finite points, voxel grids lie inside their depth.
 //!
+//! - [`part_placement`]: the PART_PLACEMENT section of a part (spec § 24)
+//!   on any bytes: read or refused cleanly; on a valid file the part rules
+//!   are checked without a panic, and an accepted placement is the
+//!   section's bytes.
+//!
 //! Not part of the stable API.
 
 use crate::input::{Input, PointSource, VoxelGrid};
@@ -211,5 +216,30 @@ pub fn voxel_list(bytes: &[u8]) {
             .expect("reading a written binary list");
         assert_eq!(again.codes, list.codes);
         assert_eq!(again.records, list.codes.len() as u64);
+    }
+}
+
+/// The part placement harness.
+pub fn part_placement(bytes: &[u8]) {
+    let Ok(dag) = dagfmt::Dag::open(bytes) else {
+        return;
+    };
+    let read = crate::region::read_placement(&dag);
+    if !dagfmt::validate::validate(bytes).is_empty() {
+        return;
+    }
+    let checked = crate::region::check_part(&dag);
+    if let Ok(Some(p)) = checked {
+        assert_eq!(read, Ok(Some(p.clone())));
+        let s = dag
+            .sections()
+            .iter()
+            .find(|s| s.kind.to_raw() == crate::region::PART_PLACEMENT_KIND)
+            .expect("the placement's section");
+        assert_eq!(
+            &bytes[s.offset as usize..s.offset as usize + crate::region::PLACEMENT_LEN],
+            &p.to_bytes()[..]
+        );
+        assert!(p.cells.start < p.cells.end && p.level + 2 <= dag.header().depth);
     }
 }

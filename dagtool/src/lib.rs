@@ -14,6 +14,10 @@
 //! - [`convert`]: the `convert` command (pipeline + builder + atomic output);
 //! - [`external`]: the out-of-core DAG build (runs spilled to unnamed
 //!   temporary files, merged level by level within a memory budget);
+//! - [`region`]: region builds: a cell of the root cube and the part file
+//!   that holds one (its placement section);
+//! - [`merge`]: the `merge` command (parts joined by the out-of-core level
+//!   merge into the file of one whole conversion);
 //! - [`output`]: atomic file output;
 //! - [`demo`]: the whole pipeline on a built-in scene;
 //! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`;
@@ -32,9 +36,11 @@ pub mod external;
 pub mod fuzzing;
 pub mod geom;
 pub mod input;
+pub mod merge;
 pub mod mesh;
 pub mod output;
 pub mod pipeline;
+pub mod region;
 pub mod solid;
 pub mod sysinfo;
 pub mod verify;

@@ -133,6 +133,33 @@ enum Command {
     /// a voxel grid (MagicaVoxel, binvox) or a voxel list to a .vdag file.
     #[command(after_long_help = CONVERT_HELP)]
     Convert(ConvertArgs),
+    /// Join parts (made by convert --region, or by earlier merges) into a
+    /// larger part or, when they cover the whole root cube, into the .vdag one
+    /// conversion of the whole input writes, byte for byte.
+    Merge {
+        /// The parts, in any order.
+        #[arg(required = true)]
+        parts: Vec<PathBuf>,
+        /// The file to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Memory to work in (e.g. 4G, 512M); default: 3/4 of physical memory.
+        #[arg(long)]
+        memory_limit: Option<String>,
+        /// Directory of the (unnamed) temporary files; default: the output's
+        /// directory.
+        #[arg(long, value_name = "DIR")]
+        tmp_dir: Option<PathBuf>,
+        /// Testing: merge every level in this many buckets.
+        #[arg(long, hide = true)]
+        buckets: Option<u32>,
+        /// Replace an existing output file.
+        #[arg(long)]
+        force: bool,
+        /// No summary.
+        #[arg(short, long)]
+        quiet: bool,
+    },
     /// Check .vdag (or .vdag.zst) files against every rule of the format.
     /// Exit status: 0 all valid, 1 some invalid, 2 usage or I/O error.
     Validate {
@@ -328,8 +355,10 @@ enum FormatArg {
 #[derive(Args, Debug)]
 struct ConvertArgs {
     /// Input: a mesh (.obj .gltf .glb .ply .stl), a point cloud (.ply .las
-    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list.
-    input: PathBuf,
+    /// .laz), a voxel grid (.vox .binvox) or a text/binary voxel list; or
+    /// several point clouds (tiles), read as one in this order.
+    #[arg(required = true, num_args = 1..)]
+    input: Vec<PathBuf>,
     /// Output .vdag file.
     #[arg(short, long)]
     output: PathBuf,
@@ -372,6 +401,10 @@ struct ConvertArgs {
     /// a point, not only the voxel containing it.
     #[arg(long, value_name = "R", default_value_t = 0.0)]
     point_radius: f64,
+    /// Build only cell X,Y,Z of level K of the root cube (each in 0..2^K,
+    /// K <= D-2) into a part for `dagtool merge`; needs --bounds.
+    #[arg(long, value_name = "K:X,Y,Z")]
+    region: Option<String>,
     /// Memory to work in (e.g. 4G, 512M): beyond it the DAG is built in runs
     /// spilled to temporary files; default: 3/4 of physical memory.
     #[arg(long)]
@@ -436,10 +469,16 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
         })?),
         None => None,
     };
-    let mut opts = ConvertOptions::new(&args.input, &args.output, depth);
+    let mut opts = ConvertOptions::new(&args.input[0], &args.output, depth);
+    opts.extra_inputs = args.input[1..].to_vec();
     opts.format = format_of(args.input_format);
     opts.bounds = args.bounds.as_deref().map(Bounds::parse).transpose()?;
     opts.point_radius = args.point_radius;
+    opts.region = args
+        .region
+        .as_deref()
+        .map(dagtool::region::Region::parse)
+        .transpose()?;
     opts.solid = args.solid;
     opts.colors = args.colors;
     opts.attributes = match args.attributes {
@@ -472,7 +511,7 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
             .map_err(|e| ConvertError::Usage(format!("cannot start {n} threads: {e}")))?,
         None => {}
     }
-    let summary = convert::convert(&opts).map_err(|e| name_the_input(e, &args.input))?;
+    let summary = convert::convert(&opts).map_err(|e| name_the_input(e, &args.input[0]))?;
     if !args.quiet {
         print_stdout(&format!("{}\n", summary.render(&args.output)))?;
     }
@@ -493,6 +532,35 @@ fn name_the_input(error: ConvertError, input: &std::path::Path) -> ConvertError 
 fn run(cli: Cli) -> Result<i32, ConvertError> {
     match cli.command {
         Command::Convert(args) => convert_cmd(args).map(|()| 0),
+        Command::Merge {
+            parts,
+            output,
+            memory_limit,
+            tmp_dir,
+            buckets,
+            force,
+            quiet,
+        } => {
+            let memory_limit = match &memory_limit {
+                Some(s) => Some(parse_size(s).ok_or_else(|| {
+                    ConvertError::Usage(format!(
+                        "--memory-limit {s} is not a size such as 4G or 512M"
+                    ))
+                })?),
+                None => None,
+            };
+            let opts = dagtool::merge::MergeOptions {
+                memory_limit,
+                force,
+                tmp_dir,
+                buckets,
+            };
+            let summary = dagtool::merge::merge(&parts, &output, &opts)?;
+            if !quiet {
+                print_stdout(&summary.render(&output))?;
+            }
+            Ok(0)
+        }
         Command::Validate { files, json } => {
             let stderr = std::io::stderr();
             // 1 means "invalid", so failing to write the report is 2.

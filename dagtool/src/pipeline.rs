@@ -127,6 +127,20 @@ impl Bins {
         bins
     }
 
+    /// Keeps only the chunks whose Morton code passes `keep`.
+    pub fn retain(&mut self, mut keep: impl FnMut(u64) -> bool) {
+        let old = std::mem::take(self);
+        for (i, &code) in old.codes.iter().enumerate() {
+            if keep(code) {
+                let start = self.triangles.len();
+                self.triangles
+                    .extend_from_slice(&old.triangles[old.ranges[i].clone()]);
+                self.codes.push(code);
+                self.ranges.push(start..self.triangles.len());
+            }
+        }
+    }
+
     /// Bytes held.
     pub fn heap_bytes(&self) -> usize {
         self.codes.len() * (8 + 16) + self.triangles.len() * 4

@@ -54,7 +54,25 @@ pub fn run(
             }
         };
         let report = validate_with(bytes.bytes(), &ValidateOptions::default());
-        if !report.is_valid() && outcome == Outcome::Valid {
+        // A valid file that is a part (spec § 24) is checked against the
+        // part rules too; they are one finding at most.
+        let part = if report.is_valid() {
+            dagfmt::Dag::open(bytes.bytes())
+                .ok()
+                .map(|dag| crate::region::check_part(&dag))
+        } else {
+            None
+        };
+        let part_error = match &part {
+            Some(Err(e)) => Some(e.clone()),
+            _ => None,
+        };
+        let placement = match part {
+            Some(Ok(Some(p))) => Some(p),
+            _ => None,
+        };
+        let valid = report.is_valid() && part_error.is_none();
+        if !valid && outcome == Outcome::Valid {
             outcome = Outcome::Invalid;
         }
         if json {
@@ -62,19 +80,45 @@ pub fn run(
                 "file": name,
                 "packed": bytes.was_packed(),
                 "bytes": bytes.bytes().len(),
-                "valid": report.is_valid(),
+                "valid": valid,
                 "truncated": report.truncated,
-                "errors": report.errors.iter().map(error_json).collect::<Vec<_>>(),
+                "part": placement.as_ref().map(|p| serde_json::json!({
+                    "region_level": p.level,
+                    "cells": [p.cells.start, p.cells.end],
+                })),
+                "errors": report
+                    .errors
+                    .iter()
+                    .map(error_json)
+                    .chain(part_error.iter().map(|e| serde_json::json!({
+                        "code": e.code,
+                        "name": e.name,
+                        "offset": e.offset,
+                        "level": null,
+                        "node": null,
+                        "message": e.message,
+                    })))
+                    .collect::<Vec<_>>(),
             }));
+        } else if let Some(e) = &part_error {
+            writeln!(out, "{name}: INVALID, 1 violation of the part rules")?;
+            writeln!(out, "  {e}")?;
         } else if report.is_valid() {
             writeln!(
                 out,
-                "{name}: valid ({} bytes{})",
+                "{name}: valid ({} bytes{}{})",
                 bytes.bytes().len(),
                 if bytes.was_packed() {
                     ", unpacked from zstd"
                 } else {
                     ""
+                },
+                match &placement {
+                    Some(p) => format!(
+                        "; a part: cells {}..{} of level {}",
+                        p.cells.start, p.cells.end, p.level
+                    ),
+                    None => String::new(),
                 }
             )?;
         } else {

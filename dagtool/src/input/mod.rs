@@ -117,6 +117,116 @@ pub trait PointSource {
     fn rewind(&mut self) -> Result<(), ConvertError>;
 }
 
+/// Several point clouds read as one, in order (tiles of one survey): the
+/// points of the first, then of the second, and so on. Colours only when
+/// every cloud has them.
+pub struct ChainedPoints {
+    sources: Vec<Box<dyn PointSource>>,
+    at: usize,
+    colors: bool,
+    skipped: usize,
+}
+
+impl std::fmt::Debug for ChainedPoints {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
+    }
+}
+
+impl ChainedPoints {
+    /// The clouds `sources`, in order; with `keep`, only those whose
+    /// declared bounds (all must declare them) pass it (a region build reads
+    /// only the tiles that meet its cell; the colours still depend on every
+    /// cloud, as in the whole build).
+    pub fn new(
+        sources: Vec<Box<dyn PointSource>>,
+        keep: Option<&dyn Fn([f64; 3], [f64; 3]) -> bool>,
+    ) -> Self {
+        let colors = sources.iter().all(|s| s.has_colors());
+        let total = sources.len();
+        let sources: Vec<_> = match keep {
+            None => sources,
+            Some(keep) => sources
+                .into_iter()
+                .filter(|s| s.declared_bounds().is_none_or(|(lo, hi)| keep(lo, hi)))
+                .collect(),
+        };
+        ChainedPoints {
+            skipped: total - sources.len(),
+            sources,
+            at: 0,
+            colors,
+        }
+    }
+
+    /// Clouds left out by `keep`.
+    pub fn skipped(&self) -> usize {
+        self.skipped
+    }
+}
+
+impl PointSource for ChainedPoints {
+    fn describe(&self) -> String {
+        format!(
+            "{} point clouds read as one ({} more left out: their bounds miss the region){}",
+            self.sources.len(),
+            self.skipped,
+            self.sources
+                .first()
+                .map(|s| format!(", the first: {}", s.describe()))
+                .unwrap_or_default()
+        )
+    }
+
+    fn count(&self) -> u64 {
+        self.sources.iter().map(|s| s.count()).sum()
+    }
+
+    fn declared_bounds(&self) -> Option<([f64; 3], [f64; 3])> {
+        let mut all: Option<([f64; 3], [f64; 3])> = None;
+        for s in &self.sources {
+            let (lo, hi) = s.declared_bounds()?;
+            all = Some(match all {
+                None => (lo, hi),
+                Some((a, b)) => (
+                    [0, 1, 2].map(|i| a[i].min(lo[i])),
+                    [0, 1, 2].map(|i| b[i].max(hi[i])),
+                ),
+            });
+        }
+        all
+    }
+
+    fn has_colors(&self) -> bool {
+        self.colors
+    }
+
+    fn read(&mut self, out: &mut Vec<CloudPoint>, max: usize) -> Result<usize, ConvertError> {
+        while let Some(s) = self.sources.get_mut(self.at) {
+            let start = out.len();
+            let n = s.read(out, max)?;
+            if n > 0 {
+                if !self.colors {
+                    for p in &mut out[start..] {
+                        p.rgba = crate::mesh::DEFAULT_COLOR;
+                    }
+                }
+                return Ok(n);
+            }
+            self.at += 1;
+        }
+        Ok(0)
+    }
+
+    fn rewind(&mut self) -> Result<(), ConvertError> {
+        for s in &mut self.sources {
+            s.rewind()?;
+        }
+        self.at = 0;
+        Ok(())
+    }
+}
+
 /// A grid of integer voxels with its own placement.
 #[derive(Clone, Debug, Default)]
 pub struct VoxelGrid {

@@ -389,3 +389,45 @@ fn every_las_point_format_reads_back_plain_and_compressed() {
         }
     }
 }
+
+/// The part placement harness over the committed parts and their mutations,
+/// and over placements edited with their checksums repaired (which random
+/// mutations, stopped by a checksum, rarely reach).
+#[test]
+fn part_placement_harness_over_committed_and_edited_parts() {
+    let seeds = committed("part_placement");
+    let mut rng = Rng(45);
+    let mut edited = Vec::new();
+    for (_, bytes) in &seeds {
+        let dag = dagfmt::Dag::open(bytes).unwrap();
+        let s = *dag
+            .sections()
+            .iter()
+            .find(|s| s.kind.to_raw() == dagtool::region::PART_PLACEMENT_KIND)
+            .unwrap();
+        for _ in 0..200 {
+            let mut b = bytes.clone();
+            let at = s.offset as usize + rng.below(48);
+            b[at] = match rng.below(3) {
+                0 => rng.next() as u8,
+                1 => b[at] ^ (1 << rng.below(8)),
+                _ => b[at].wrapping_add(1),
+            };
+            let crc = crc32c::crc32c(&b[s.offset as usize..s.offset as usize + 48]);
+            let entry = s.entry_offset() as usize;
+            b[entry + 32..entry + 36].copy_from_slice(&crc.to_le_bytes());
+            let end = 128 + 40 * dag.sections().len();
+            let header: [u8; 128] = b[..128].try_into().unwrap();
+            let h = dagfmt::layout::header_checksum(&header, &b[128..end]);
+            b[124..128].copy_from_slice(&h.to_le_bytes());
+            edited.push(b);
+        }
+    }
+    let runs = run(
+        "part_placement",
+        fuzzing::part_placement,
+        edited,
+        100 * scale(),
+    );
+    assert!(runs >= 60_000 / 100, "{runs} runs");
+}

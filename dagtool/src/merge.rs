@@ -1,0 +1,460 @@
+//! `dagtool merge`: joins parts (spec § 24) into a larger part or, when they
+//! cover the whole root cube, into the file one `dagtool convert` of the
+//! whole input writes, byte for byte.
+//!
+//! Every part is validated first (the format's rules, then the part rules
+//! E090–E094); the parts must agree on depth, root cube, attributes, region
+//! level and colours (E095), must not overlap (E096) and must cover one
+//! contiguous Morton range of cells (E097). Each part is then one *run* of
+//! the out-of-core level merge ([`crate::external::RunMerge`]): a part is
+//! the canonical DAG of a Morton range of complete subtrees, its records in
+//! first-seen order, which is what a spilled run of one conversion holds.
+//! The merge therefore deduplicates exactly, works within a memory budget,
+//! and its result does not depend on how the parts were grouped: merging is
+//! associative, and parts of parts are parts.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use dagfmt::assemble::FileHeader;
+use dagfmt::mmap::MappedFile;
+use dagfmt::reader::{LevelSection, NodeRef};
+use dagfmt::validate::{ValidateOptions, validate_with};
+use dagfmt::{Dag, FormatError};
+
+use crate::error::ConvertError;
+use crate::external::{ColourSink, MIN_MERGE_BUDGET, RunMerge, Scratch};
+use crate::output::check_output;
+use crate::region::{ColourMode, Placement, Region, check_part, rules};
+use crate::sysinfo::{current_rss, total_memory};
+
+/// Options of `dagtool merge`.
+#[derive(Clone, Debug, Default)]
+pub struct MergeOptions {
+    /// Memory limit in bytes (`None`: 3/4 of physical memory).
+    pub memory_limit: Option<u64>,
+    /// Replace an existing output file.
+    pub force: bool,
+    /// Directory of the temporary files (`None`: the output's directory).
+    pub tmp_dir: Option<PathBuf>,
+    /// Testing: the number of buckets of every level's merge.
+    pub buckets: Option<u32>,
+}
+
+/// What a merge did.
+#[derive(Clone, Debug)]
+pub struct MergeSummary {
+    /// Parts read.
+    pub parts: usize,
+    /// The region level K of the parts.
+    pub region_level: u8,
+    /// The Morton range of level-K cells the output covers.
+    pub cells: Range<u64>,
+    /// Whether the output covers the whole root cube, and is therefore an
+    /// ordinary `.vdag` (no placement) rather than a part.
+    pub complete: bool,
+    /// Depth D.
+    pub depth: u8,
+    /// Set voxels.
+    pub voxels: u64,
+    /// Distinct nodes per level, root first.
+    pub level_nodes: Vec<u64>,
+    /// Bytes of the output file.
+    pub file_bytes: u64,
+    /// Bytes read from the parts.
+    pub input_bytes: u64,
+    /// Buckets of the largest level's merge.
+    pub max_buckets: u64,
+    /// Bytes written to temporary files.
+    pub temp_bytes: u64,
+    /// Seconds spent validating the parts.
+    pub validate_seconds: f64,
+    /// Total seconds.
+    pub total_seconds: f64,
+}
+
+impl MergeSummary {
+    /// The summary as text for people.
+    pub fn render(&self, output: &Path) -> String {
+        format!(
+            "merged:   {} part{} of level {} (cells {}..{} of {}), depth {}\n\
+             voxels:   {}\n\
+             nodes:    {:?} per level\n\
+             output:   {} ({} bytes, {})\n\
+             time:     {:.2} s ({:.2} s validating {} bytes of parts; {} temporary bytes, up to {} buckets per level)\n",
+            self.parts,
+            if self.parts == 1 { "" } else { "s" },
+            self.region_level,
+            self.cells.start,
+            self.cells.end,
+            1u64 << (3 * u32::from(self.region_level)),
+            self.depth,
+            self.voxels,
+            self.level_nodes,
+            output.display(),
+            self.file_bytes,
+            if self.complete {
+                "the whole volume"
+            } else {
+                "a part"
+            },
+            self.total_seconds,
+            self.validate_seconds,
+            self.input_bytes,
+            self.temp_bytes,
+            self.max_buckets,
+        )
+    }
+}
+
+/// A part opened and checked.
+struct Part {
+    path: PathBuf,
+    file: MappedFile,
+    placement: Placement,
+}
+
+fn part_error(
+    path: &Path,
+    code: &str,
+    name: &str,
+    message: impl std::fmt::Display,
+) -> ConvertError {
+    ConvertError::Input(format!("{code} {name}: {}: {message}", path.display()))
+}
+
+/// Opens, validates and checks one part.
+fn open_part(path: &Path) -> Result<Part, ConvertError> {
+    let file = MappedFile::open(path)
+        .map_err(|e| ConvertError::io(format!("cannot read part {}", path.display()), e))?;
+    let report = validate_with(
+        file.bytes(),
+        &ValidateOptions {
+            max_errors: 1,
+            ..Default::default()
+        },
+    );
+    if let Some(e) = report.errors.first() {
+        return Err(part_error(
+            path,
+            e.code.code(),
+            e.code.name(),
+            format!("invalid at byte {:#x}: {}", e.offset, e.message),
+        ));
+    }
+    let dag = Dag::open(file.bytes()).map_err(|e| format_error(path, &e))?;
+    let placement = match check_part(&dag) {
+        Ok(Some(p)) => p,
+        Ok(None) => {
+            let (code, name) = rules::NOT_A_PART;
+            return Err(part_error(
+                path,
+                code,
+                name,
+                "a .vdag without a PART_PLACEMENT section is not a part (make parts with convert --region)",
+            ));
+        }
+        Err(e) => {
+            return Err(part_error(
+                path,
+                e.code,
+                e.name,
+                format!("at byte {:#x}: {}", e.offset, e.message),
+            ));
+        }
+    };
+    drop(dag);
+    Ok(Part {
+        path: path.to_path_buf(),
+        file,
+        placement,
+    })
+}
+
+fn format_error(path: &Path, e: &FormatError) -> ConvertError {
+    part_error(
+        path,
+        e.code.code(),
+        e.code.name(),
+        format!("at byte {:#x}: {}", e.offset, e.message),
+    )
+}
+
+/// Merges `parts` into `output`: a part covering their cells or, when they
+/// cover the whole root cube, the ordinary `.vdag` of the whole volume
+/// (byte-identical to one conversion of the whole input). Nothing is
+/// written unless it succeeds.
+pub fn merge(
+    parts: &[PathBuf],
+    output: &Path,
+    opts: &MergeOptions,
+) -> Result<MergeSummary, ConvertError> {
+    let start = Instant::now();
+    if parts.is_empty() {
+        return Err(ConvertError::Usage("merge needs at least one part".into()));
+    }
+    check_output(output, opts.force)?;
+    let out_dir = dagfmt::output::output_dir(output);
+    let tmp_dir = opts.tmp_dir.clone().unwrap_or_else(|| out_dir.clone());
+    let scratch = Scratch::new(&tmp_dir)?;
+    let limit = opts
+        .memory_limit
+        .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
+
+    let mut opened = parts
+        .iter()
+        .map(|p| open_part(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let validate_seconds = start.elapsed().as_secs_f64();
+    opened.sort_by_key(|p| p.placement.cells.start);
+
+    // One volume: the same depth, root cube, attributes, level and colours.
+    let first = Dag::open(opened[0].file.bytes()).map_err(|e| format_error(&opened[0].path, &e))?;
+    let header = first.header().clone();
+    let placement0 = opened[0].placement.clone();
+    drop(first);
+    for p in &opened[1..] {
+        let dag = Dag::open(p.file.bytes()).map_err(|e| format_error(&p.path, &e))?;
+        let h = dag.header();
+        let differ = if h.depth != header.depth {
+            Some(format!("depth {} against {}", h.depth, header.depth))
+        } else if h.root_min.map(f64::to_bits) != header.root_min.map(f64::to_bits)
+            || h.root_size.to_bits() != header.root_size.to_bits()
+        {
+            Some(format!(
+                "root cube {:?} size {} against {:?} size {}",
+                h.root_min, h.root_size, header.root_min, header.root_size
+            ))
+        } else if h.attribute_kind != header.attribute_kind {
+            Some(format!(
+                "attribute kind {} against {}",
+                h.attribute_kind.to_raw(),
+                header.attribute_kind.to_raw()
+            ))
+        } else if p.placement.level != placement0.level {
+            Some(format!(
+                "region level {} against {}",
+                p.placement.level, placement0.level
+            ))
+        } else if p.placement.colours != placement0.colours {
+            Some(format!(
+                "{} against {}",
+                p.placement.colours, placement0.colours
+            ))
+        } else {
+            None
+        };
+        if let Some(d) = differ {
+            let (code, name) = rules::MISMATCH;
+            return Err(ConvertError::Input(format!(
+                "{code} {name}: {} and {} are not parts of one volume: {d}",
+                p.path.display(),
+                opened[0].path.display()
+            )));
+        }
+    }
+    for w in opened.windows(2) {
+        let (a, b) = (&w[0], &w[1]);
+        let (ra, rb) = (&a.placement.cells, &b.placement.cells);
+        if rb.start < ra.end {
+            let (code, name) = rules::OVERLAP;
+            return Err(ConvertError::Input(format!(
+                "{code} {name}: {} (cells {}..{}) and {} (cells {}..{}) both cover cell {} ({})",
+                a.path.display(),
+                ra.start,
+                ra.end,
+                b.path.display(),
+                rb.start,
+                rb.end,
+                rb.start,
+                Region::from_index(a.placement.level, rb.start)
+            )));
+        }
+        if rb.start > ra.end {
+            let (code, name) = rules::GAP;
+            return Err(ConvertError::Input(format!(
+                "{code} {name}: no part covers cells {}..{} between {} and {}: merge parts of one contiguous Morton range",
+                ra.end,
+                rb.start,
+                a.path.display(),
+                b.path.display()
+            )));
+        }
+    }
+    let level = placement0.level;
+    let cells = opened[0].placement.cells.start..opened.last().expect("a part").placement.cells.end;
+    let placement = Placement {
+        level,
+        cells,
+        colours: placement0.colours,
+    };
+    let complete = placement.is_whole();
+    let depth = header.depth;
+
+    // Each part is one run, split at the region level (at least 1).
+    let split = level.max(1);
+    let mut runs = RunMerge::new(depth, header.attribute_kind, split, &scratch, opts.buckets)?;
+    let colour_cap = (limit / 16).clamp(1 << 20, 256 << 20);
+    let packing = match (complete, placement.colours) {
+        (true, ColourMode::Packed(e)) => Some(e),
+        _ => None,
+    };
+    let mut colours = (placement.colours != ColourMode::None)
+        .then(|| ColourSink::new(&scratch, colour_cap, packing));
+    let mut input_bytes = 0u64;
+    for p in &opened {
+        input_bytes += p.file.bytes().len() as u64;
+        let dag = Dag::open(p.file.bytes()).map_err(|e| format_error(&p.path, &e))?;
+        add_run(&dag, split, &mut runs).map_err(|e| match e {
+            RunError::Format(e) => format_error(&p.path, &e),
+            RunError::Convert(e) => e,
+        })?;
+        if let Some(c) = &mut colours {
+            for chunk in dag.colors().unwrap_or(&[]).chunks(1 << 20) {
+                c.write(chunk)?;
+            }
+        }
+    }
+    drop(opened);
+    let budget = limit
+        .saturating_sub(current_rss().unwrap_or(0) + (limit / 16).max(24 << 20))
+        .max(MIN_MERGE_BUDGET);
+    let colours = colours.map(ColourSink::finish).transpose()?;
+    let dag = runs.finish(budget, &|_| {})?;
+    let file_header = FileHeader {
+        depth,
+        attributes: header.attribute_kind,
+        root_min: header.root_min,
+        root_size: header.root_size,
+        voxel_count: dag.voxel_count(),
+    };
+    let file_bytes = crate::convert::write_dag(
+        output,
+        opts.force,
+        &dag,
+        colours.as_ref(),
+        file_header,
+        (!complete).then_some(&placement),
+    )?;
+    Ok(MergeSummary {
+        parts: parts.len(),
+        region_level: level,
+        cells: placement.cells.clone(),
+        complete,
+        depth,
+        voxels: dag.voxel_count(),
+        level_nodes: dag.level_sections().iter().map(|s| s.item_count).collect(),
+        file_bytes,
+        input_bytes,
+        max_buckets: dag.report().max_buckets,
+        temp_bytes: scratch.bytes_written(),
+        validate_seconds,
+        total_seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+enum RunError {
+    Format(FormatError),
+    Convert(ConvertError),
+}
+
+impl From<FormatError> for RunError {
+    fn from(e: FormatError) -> Self {
+        RunError::Format(e)
+    }
+}
+
+impl From<ConvertError> for RunError {
+    fn from(e: ConvertError) -> Self {
+        RunError::Convert(e)
+    }
+}
+
+/// The word offsets of the records of an interior level, in order: a
+/// record's index is its offset's rank.
+fn record_starts(dag: &Dag<'_>, section: &LevelSection<'_>) -> Result<Vec<u32>, FormatError> {
+    let mut starts = Vec::with_capacity(section.node_count as usize);
+    let mut word = 0u64;
+    for _ in 0..section.node_count {
+        starts.push(word as u32);
+        word += dag.node(section.level, word as u32)?.record_size() / 4;
+    }
+    Ok(starts)
+}
+
+/// Gives the part's levels `split ..= D − 2` and its level-`split` subtrees
+/// to `runs` as one run: record indices are the run-local ids.
+fn add_run(dag: &Dag<'_>, split: u8, runs: &mut RunMerge) -> Result<(), RunError> {
+    if dag.is_empty() {
+        return Ok(());
+    }
+    let leaf = dag.leaf_level();
+    let levels = dag.levels();
+    // The index of a child pointer of level `l`: its rank among the record
+    // starts of level l + 1, or the leaf index itself.
+    let index_of = |starts: &[u32], pointer: u32| -> Result<u32, RunError> {
+        starts
+            .binary_search(&pointer)
+            .map(|i| i as u32)
+            .map_err(|_| {
+                RunError::Convert(ConvertError::Input(format!(
+                    "a pointer ({pointer}) does not start a record"
+                )))
+            })
+    };
+    let mut below: Vec<u32> = Vec::new();
+    let mut children = Vec::with_capacity(8);
+    // Levels are given bottom-up so that each needs only the starts of the
+    // level below.
+    for level in (split..leaf).rev() {
+        let section = &levels[usize::from(level)];
+        let starts = record_starts(dag, section)?;
+        let mut word = 0u32;
+        for _ in 0..section.node_count {
+            let node = dag.node(level, word)?;
+            children.clear();
+            for r in 0..node.child_count() {
+                let p = node.pointer_at(r);
+                children.push(if level + 1 == leaf {
+                    p
+                } else {
+                    index_of(&below, p)?
+                });
+            }
+            runs.push_node(level, node.header, &children)?;
+            word += (node.record_size() / 4) as u32;
+        }
+        below = starts;
+    }
+    for i in 0..levels[usize::from(leaf)].node_count {
+        runs.push_leaf(dag.leaf(i as u32)?.0)?;
+    }
+    let mut failed: Option<RunError> = None;
+    crate::region::visit_cells(dag, split, &mut |code, pointer| {
+        if failed.is_some() {
+            return;
+        }
+        let result = (|| -> Result<(), RunError> {
+            let id = if split == leaf {
+                pointer
+            } else {
+                index_of(&below, pointer)?
+            };
+            let count = dag.subtree_voxel_count(NodeRef {
+                level: split,
+                pointer,
+            })?;
+            runs.push_root(code, id, count)?;
+            Ok(())
+        })();
+        if let Err(e) = result {
+            failed = Some(e);
+        }
+    })?;
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    runs.end_run()?;
+    Ok(())
+}

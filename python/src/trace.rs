@@ -1,0 +1,282 @@
+//! `Dag.trace`: numpy rays through `dagtrace`'s batch API or its GPU tracer.
+
+use std::sync::Arc;
+
+use dagfmt::batch::{Hit, Ray};
+use dagtrace::Tracer;
+use dagtrace::gpu::{GpuOptions, GpuTracer};
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use rayon::prelude::*;
+
+use crate::errors;
+use crate::file::PyDag;
+
+/// Rows of an (N, 3) float array as read: a borrowed float32 or float64
+/// buffer (zero-copy), or a float32 copy made by numpy for any other dtype
+/// or layout.
+enum Points<'py> {
+    F32(PyReadonlyArray2<'py, f32>),
+    F64(PyReadonlyArray2<'py, f64>),
+}
+
+/// A borrowed contiguous view of [`Points`], which may cross into the
+/// GIL-free part.
+#[derive(Clone, Copy)]
+enum Flat<'a> {
+    F32(&'a [f32]),
+    F64(&'a [f64]),
+}
+
+impl Flat<'_> {
+    /// Row `i` as f32 (float64 rounds to nearest, as the batch formats hold f32).
+    #[inline]
+    fn row(self, i: usize) -> [f32; 3] {
+        match self {
+            Flat::F32(v) => [v[3 * i], v[3 * i + 1], v[3 * i + 2]],
+            Flat::F64(v) => [v[3 * i] as f32, v[3 * i + 1] as f32, v[3 * i + 2] as f32],
+        }
+    }
+}
+
+impl<'py> Points<'py> {
+    /// Reads `array` as (N, 3) floats: C-contiguous float32 and float64
+    /// arrays are borrowed; anything else goes through
+    /// `numpy.ascontiguousarray(array, dtype=float32)`.
+    fn extract(name: &str, array: &Bound<'py, PyAny>) -> PyResult<Self> {
+        let contiguous = |a: &Bound<'py, PyAny>| -> bool {
+            a.cast::<numpy::PyUntypedArray>()
+                .is_ok_and(|u| u.is_c_contiguous())
+        };
+        let points = if let Ok(a) = array.extract::<PyReadonlyArray2<'py, f32>>()
+            && contiguous(array)
+        {
+            Points::F32(a)
+        } else if let Ok(a) = array.extract::<PyReadonlyArray2<'py, f64>>()
+            && contiguous(array)
+        {
+            Points::F64(a)
+        } else {
+            let numpy = array.py().import("numpy")?;
+            let converted =
+                numpy.call_method1("ascontiguousarray", (array, numpy.getattr("float32")?))?;
+            Points::F32(
+                converted
+                    .extract::<PyReadonlyArray2<'py, f32>>()
+                    .map_err(|_| {
+                        PyValueError::new_err(format!("{name} must be an (N, 3) array of floats"))
+                    })?,
+            )
+        };
+        let shape = match &points {
+            Points::F32(a) => a.shape().to_vec(),
+            Points::F64(a) => a.shape().to_vec(),
+        };
+        if shape.len() != 2 || shape[1] != 3 {
+            return Err(PyValueError::new_err(format!(
+                "{name} must be an (N, 3) array, got shape {shape:?}"
+            )));
+        }
+        Ok(points)
+    }
+
+    fn rows(&self) -> usize {
+        match self {
+            Points::F32(a) => a.shape()[0],
+            Points::F64(a) => a.shape()[0],
+        }
+    }
+
+    fn flat(&self) -> PyResult<Flat<'_>> {
+        let not_contiguous = |_| PyValueError::new_err("array is not contiguous");
+        Ok(match self {
+            Points::F32(a) => Flat::F32(a.as_slice().map_err(not_contiguous)?),
+            Points::F64(a) => Flat::F64(a.as_slice().map_err(not_contiguous)?),
+        })
+    }
+}
+
+/// The answers of `Dag.trace`, one row per ray: `hit` (bool), `t`
+/// (float32, the entry parameter), `cell` ((N, 3) uint32, the cell's
+/// coordinates at the traced level), `level` (uint8), `face` (uint8, 0 =
+/// started inside, 1..6 = -X +X -Y +Y -Z +Z) and `index` (int64, the dense
+/// attribute index of the cell's first voxel, -1 for none). A miss has
+/// `hit` False, `t` 0, `cell` (0, 0, 0), `level` 0, `face` 0 and `index` -1,
+/// as in the binary hit batch of spec/VDAG.md §21.4.
+#[derive(Debug)]
+#[pyclass(frozen, module = "vdag", get_all)]
+pub struct TraceResult {
+    /// Whether the ray hit an occupied cell.
+    hit: Py<PyArray1<bool>>,
+    /// Entry parameter into the cell.
+    t: Py<PyArray1<f32>>,
+    /// Cell coordinates at the traced level.
+    cell: Py<PyArray2<u32>>,
+    /// The traced level.
+    level: Py<PyArray1<u8>>,
+    /// Entry face.
+    face: Py<PyArray1<u8>>,
+    /// Attribute index, -1 for none.
+    index: Py<PyArray1<i64>>,
+}
+
+#[pymethods]
+impl TraceResult {
+    /// The answers as a dict of arrays (`hit`, `t`, `cell`, `level`, `face`, `index`).
+    fn as_dict<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
+        let d = pyo3::types::PyDict::new(py);
+        d.set_item("hit", &self.hit)?;
+        d.set_item("t", &self.t)?;
+        d.set_item("cell", &self.cell)?;
+        d.set_item("level", &self.level)?;
+        d.set_item("face", &self.face)?;
+        d.set_item("index", &self.index)?;
+        Ok(d)
+    }
+
+    fn __len__(&self, py: Python<'_>) -> usize {
+        self.hit.bind(py).len()
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> String {
+        format!("vdag.TraceResult({} rays)", self.hit.bind(py).len())
+    }
+}
+
+/// Splits hits into the result's columns, on all cores.
+fn columns(py: Python<'_>, hits: &[Hit]) -> PyResult<TraceResult> {
+    let n = hits.len();
+    let (hit, t, cell, level, face, index) = py.detach(|| {
+        let hit: Vec<bool> = hits.par_iter().map(|h| h.hit).collect();
+        let t: Vec<f32> = hits
+            .par_iter()
+            .map(|h| if h.hit { h.t } else { 0.0 })
+            .collect();
+        let cell: Vec<u32> = hits
+            .par_iter()
+            .flat_map_iter(|h| if h.hit { h.voxel } else { [0; 3] })
+            .collect();
+        let level: Vec<u8> = hits
+            .par_iter()
+            .map(|h| if h.hit { h.level } else { 0 })
+            .collect();
+        let face: Vec<u8> = hits
+            .par_iter()
+            .map(|h| if h.hit { h.face } else { 0 })
+            .collect();
+        let index: Vec<i64> = hits
+            .par_iter()
+            .map(|h| match (h.hit, h.index) {
+                (true, Some(i)) => i64::try_from(i).unwrap_or(i64::MAX),
+                _ => -1,
+            })
+            .collect();
+        (hit, t, cell, level, face, index)
+    });
+    Ok(TraceResult {
+        hit: hit.into_pyarray(py).unbind(),
+        t: t.into_pyarray(py).unbind(),
+        cell: Array2::from_shape_vec((n, 3), cell)
+            .expect("three coordinates per hit")
+            .into_pyarray(py)
+            .unbind(),
+        level: level.into_pyarray(py).unbind(),
+        face: face.into_pyarray(py).unbind(),
+        index: index.into_pyarray(py).unbind(),
+    })
+}
+
+impl PyDag {
+    /// The GPU tracer of this file, made on first use.
+    pub(crate) fn gpu_tracer(&self, py: Python<'_>) -> PyResult<Arc<GpuTracer>> {
+        let mut slot = self
+            .gpu
+            .lock()
+            .map_err(|_| pyo3::exceptions::PyRuntimeError::new_err("GPU tracer poisoned"))?;
+        if let Some(gpu) = slot.as_ref() {
+            return Ok(Arc::clone(gpu));
+        }
+        let dag = self.dag(py)?;
+        let made = py.detach(|| GpuTracer::new(&dag, &GpuOptions::default()));
+        let gpu = Arc::new(
+            made.map_err(|e| errors::plain(py, "GpuError", format!("backend=\"gpu\": {e}")))?,
+        );
+        *slot = Some(Arc::clone(&gpu));
+        Ok(gpu)
+    }
+}
+
+/// Checks a level of detail against the file's depth.
+pub(crate) fn check_level(level: Option<u8>, depth: u8) -> PyResult<()> {
+    match level {
+        Some(l) if !(1..=depth).contains(&l) => Err(PyValueError::new_err(format!(
+            "level {l} is outside 1..={depth} (the file's depth)"
+        ))),
+        _ => Ok(()),
+    }
+}
+
+impl PyDag {
+    /// `Dag.trace` (file.rs holds its Python signature and docstring).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn trace_rays(
+        &self,
+        py: Python<'_>,
+        origins: &Bound<'_, PyAny>,
+        directions: &Bound<'_, PyAny>,
+        tmin: f64,
+        tmax: f64,
+        level: Option<u8>,
+        backend: &str,
+    ) -> PyResult<TraceResult> {
+        let dag = self.dag(py)?;
+        check_level(level, dag.header().depth)?;
+        if tmin.is_nan() || tmax.is_nan() {
+            return Err(PyValueError::new_err("tmin and tmax must not be NaN"));
+        }
+        let origins = Points::extract("origins", origins)?;
+        let directions = Points::extract("directions", directions)?;
+        if origins.rows() != directions.rows() {
+            return Err(PyValueError::new_err(format!(
+                "origins has {} rows but directions has {}",
+                origins.rows(),
+                directions.rows()
+            )));
+        }
+        let gpu = match backend {
+            "cpu" => None,
+            "gpu" => Some(self.gpu_tracer(py)?),
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "backend must be \"cpu\" or \"gpu\", not {other:?}"
+                )));
+            }
+        };
+        let (o, d) = (origins.flat()?, directions.flat()?);
+        let n = origins.rows();
+        let (tmin, tmax) = (tmin as f32, tmax as f32);
+        let traced = py.detach(|| -> Result<Vec<Hit>, String> {
+            let rays: Vec<Ray> = (0..n)
+                .into_par_iter()
+                .map(|i| Ray {
+                    origin: o.row(i),
+                    dir: d.row(i),
+                    tmin,
+                    tmax,
+                    level,
+                })
+                .collect();
+            match gpu {
+                Some(gpu) => gpu.trace(&rays).map_err(|e| e.to_string()),
+                None => Tracer::new(&dag)
+                    .and_then(|tracer| tracer.trace_batch(&rays))
+                    .map_err(|e| e.to_string()),
+            }
+        });
+        let hits =
+            traced.map_err(|m| errors::plain(py, "TraceError", format!("{}: {m}", self.path)))?;
+        columns(py, &hits)
+    }
+}

@@ -5,13 +5,13 @@
 //! and the docstrings below are what `help()` shows. Each submodule wraps
 //! one part of the Rust workspace:
 //!
-//! - [`file`]: `open` and the `Dag` class (header, level table, voxels,
+//! - `file`: `open` and the `Dag` class (header, level table, voxels,
 //!   colours, point queries) over `dagfmt`'s memory-mapped reader;
-//! - [`trace`]: `Dag.trace`, numpy rays through `dagtrace`'s batch API (CPU,
+//! - `trace`: `Dag.trace`, numpy rays through `dagtrace`'s batch API (CPU,
 //!   all cores, without the GIL) or its GPU tracer;
-//! - [`render`]: `Dag.render` and `render`, the images of `dagtrace render`;
-//! - [`convert`]: `convert`, `dagtool convert` with a progress callable;
-//! - [`errors`]: the exceptions (defined in Python, `vdag/errors.py`), raised
+//! - `render`: `Dag.render` and `render`, the images of `dagtrace render`;
+//! - `convert`: `convert`, `dagtool convert` with a progress callable;
+//! - `errors`: the exceptions (defined in Python, `vdag/errors.py`), raised
 //!   with the spec's error codes.
 #![deny(missing_docs)]
 

@@ -136,10 +136,12 @@ impl TraceResult {
         Ok(d)
     }
 
+    /// The number of rays answered.
     fn __len__(&self, py: Python<'_>) -> usize {
         self.hit.bind(py).len()
     }
 
+    /// `vdag.TraceResult(N rays)`.
     fn __repr__(&self, py: Python<'_>) -> String {
         format!("vdag.TraceResult({} rays)", self.hit.bind(py).len())
     }

@@ -19,7 +19,6 @@ import argparse
 import os
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -28,10 +27,17 @@ import numpy as np
 
 import vdag
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from conftest import write_binary_rays  # noqa: E402
-
 REPO = Path(__file__).resolve().parents[2]
+
+
+def write_binary_rays(path: Path, origins, directions) -> Path:
+    """A VRAY batch (spec/VDAG.md §21.3) over [0, inf] at full depth."""
+    record = np.dtype([("o", "<f4", 3), ("d", "<f4", 3), ("tmin", "<f4"), ("tmax", "<f4"), ("level", "<u4"), ("flags", "<u4")])
+    rays = np.zeros(len(origins), dtype=record)
+    rays["o"], rays["d"], rays["tmax"], rays["level"] = origins, directions, np.inf, 0xFFFFFFFF
+    with open(path, "wb") as f:
+        f.write(b"VRAY" + np.array([1], "<u4").tobytes() + np.array([len(rays)], "<u8").tobytes() + rays.tobytes())
+    return path
 
 
 def rays_through(dag: vdag.Dag, count: int, seed: int = 1):

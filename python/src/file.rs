@@ -487,6 +487,7 @@ impl PyDag {
         self.render_view(py, &v)
     }
 
+    /// `vdag.Dag(path, depth=…, voxel_count=…)`.
     fn __repr__(&self) -> String {
         format!(
             "vdag.Dag({:?}, depth={}, voxel_count={})",
@@ -508,10 +509,12 @@ pub struct VoxelChunks {
 
 #[pymethods]
 impl VoxelChunks {
+    /// The iterator itself.
     fn __iter__(slf: PyRef<'_, Self>) -> PyRef<'_, Self> {
         slf
     }
 
+    /// The next chunk of voxels; StopIteration after the last.
     fn __next__<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyArray2<u32>>>> {
         // The lock is taken without the GIL, so that a thread waiting for it
         // never holds the GIL that the thread holding it needs back.

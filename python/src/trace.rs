@@ -136,56 +136,83 @@ impl TraceResult {
         Ok(d)
     }
 
+    /// The number of rays answered.
     fn __len__(&self, py: Python<'_>) -> usize {
         self.hit.bind(py).len()
     }
 
+    /// `vdag.TraceResult(N rays)`.
     fn __repr__(&self, py: Python<'_>) -> String {
         format!("vdag.TraceResult({} rays)", self.hit.bind(py).len())
     }
 }
 
-/// Splits hits into the result's columns, on all cores.
-fn columns(py: Python<'_>, hits: &[Hit]) -> PyResult<TraceResult> {
-    let n = hits.len();
-    let (hit, t, cell, level, face, index) = py.detach(|| {
-        let hit: Vec<bool> = hits.par_iter().map(|h| h.hit).collect();
-        let t: Vec<f32> = hits
-            .par_iter()
-            .map(|h| if h.hit { h.t } else { 0.0 })
-            .collect();
-        let cell: Vec<u32> = hits
-            .par_iter()
-            .flat_map_iter(|h| if h.hit { h.voxel } else { [0; 3] })
-            .collect();
-        let level: Vec<u8> = hits
-            .par_iter()
-            .map(|h| if h.hit { h.level } else { 0 })
-            .collect();
-        let face: Vec<u8> = hits
-            .par_iter()
-            .map(|h| if h.hit { h.face } else { 0 })
-            .collect();
-        let index: Vec<i64> = hits
-            .par_iter()
-            .map(|h| match (h.hit, h.index) {
-                (true, Some(i)) => i64::try_from(i).unwrap_or(i64::MAX),
-                _ => -1,
-            })
-            .collect();
-        (hit, t, cell, level, face, index)
-    });
-    Ok(TraceResult {
-        hit: hit.into_pyarray(py).unbind(),
-        t: t.into_pyarray(py).unbind(),
-        cell: Array2::from_shape_vec((n, 3), cell)
-            .expect("three coordinates per hit")
-            .into_pyarray(py)
-            .unbind(),
-        level: level.into_pyarray(py).unbind(),
-        face: face.into_pyarray(py).unbind(),
-        index: index.into_pyarray(py).unbind(),
-    })
+/// Rays traced at a time on the CPU: the rays and hits of a chunk (20 MiB)
+/// are set up, traced and split into columns, each on all cores, without
+/// holding those of the whole batch.
+const CHUNK_RAYS: usize = 1 << 18;
+
+/// The answers as columns, filled chunk by chunk.
+struct Columns {
+    hit: Vec<bool>,
+    t: Vec<f32>,
+    cell: Vec<u32>,
+    level: Vec<u8>,
+    face: Vec<u8>,
+    index: Vec<i64>,
+}
+
+impl Columns {
+    fn new(n: usize) -> Self {
+        Columns {
+            hit: vec![false; n],
+            t: vec![0.0; n],
+            cell: vec![0; 3 * n],
+            level: vec![0; n],
+            face: vec![0; n],
+            index: vec![-1; n],
+        }
+    }
+
+    /// Writes the answers of rays `first..first + hits.len()`, on all
+    /// cores; misses keep the zero / -1 they were made with.
+    fn fill(&mut self, first: usize, hits: &[Hit]) {
+        const PART: usize = 4096;
+        let end = first + hits.len();
+        self.hit[first..end]
+            .par_chunks_mut(PART)
+            .zip(self.t[first..end].par_chunks_mut(PART))
+            .zip(self.cell[3 * first..3 * end].par_chunks_mut(3 * PART))
+            .zip(self.level[first..end].par_chunks_mut(PART))
+            .zip(self.face[first..end].par_chunks_mut(PART))
+            .zip(self.index[first..end].par_chunks_mut(PART))
+            .zip(hits.par_chunks(PART))
+            .for_each(|((((((hit, t), cell), level), face), index), hits)| {
+                for (i, h) in hits.iter().enumerate().filter(|(_, h)| h.hit) {
+                    hit[i] = true;
+                    t[i] = h.t;
+                    cell[3 * i..3 * i + 3].copy_from_slice(&h.voxel);
+                    level[i] = h.level;
+                    face[i] = h.face;
+                    index[i] = h.index.map_or(-1, |x| i64::try_from(x).unwrap_or(i64::MAX));
+                }
+            });
+    }
+
+    fn into_result(self, py: Python<'_>) -> TraceResult {
+        let n = self.hit.len();
+        TraceResult {
+            hit: self.hit.into_pyarray(py).unbind(),
+            t: self.t.into_pyarray(py).unbind(),
+            cell: Array2::from_shape_vec((n, 3), self.cell)
+                .expect("three coordinates per hit")
+                .into_pyarray(py)
+                .unbind(),
+            level: self.level.into_pyarray(py).unbind(),
+            face: self.face.into_pyarray(py).unbind(),
+            index: self.index.into_pyarray(py).unbind(),
+        }
+    }
 }
 
 impl PyDag {
@@ -257,26 +284,41 @@ impl PyDag {
         let (o, d) = (origins.flat()?, directions.flat()?);
         let n = origins.rows();
         let (tmin, tmax) = (tmin as f32, tmax as f32);
-        let traced = py.detach(|| -> Result<Vec<Hit>, String> {
-            let rays: Vec<Ray> = (0..n)
-                .into_par_iter()
-                .map(|i| Ray {
-                    origin: o.row(i),
-                    dir: d.row(i),
-                    tmin,
-                    tmax,
-                    level,
-                })
-                .collect();
+        let ray = |i: usize| Ray {
+            origin: o.row(i),
+            dir: d.row(i),
+            tmin,
+            tmax,
+            level,
+        };
+        let traced = py.detach(|| -> Result<Columns, String> {
+            let mut columns = Columns::new(n);
             match gpu {
-                Some(gpu) => gpu.trace(&rays).map_err(|e| e.to_string()),
-                None => Tracer::new(&dag)
-                    .and_then(|tracer| tracer.trace_batch(&rays))
-                    .map_err(|e| e.to_string()),
+                // The GPU tracer streams a batch in chunks of its own.
+                Some(gpu) => {
+                    let rays: Vec<Ray> = (0..n).into_par_iter().map(ray).collect();
+                    columns.fill(0, &gpu.trace(&rays).map_err(|e| e.to_string())?);
+                }
+                None => {
+                    let tracer = Tracer::new(&dag).map_err(|e| e.to_string())?;
+                    let mut rays = Vec::with_capacity(CHUNK_RAYS.min(n));
+                    let mut hits = vec![Hit::MISS; CHUNK_RAYS.min(n)];
+                    for first in (0..n).step_by(CHUNK_RAYS) {
+                        let end = (first + CHUNK_RAYS).min(n);
+                        rays.clear();
+                        rays.par_extend((first..end).into_par_iter().map(ray));
+                        let hits = &mut hits[..end - first];
+                        tracer
+                            .trace_batch_into(&rays, hits)
+                            .map_err(|e| e.to_string())?;
+                        columns.fill(first, hits);
+                    }
+                }
             }
+            Ok(columns)
         });
-        let hits =
+        let columns =
             traced.map_err(|m| errors::plain(py, "TraceError", format!("{}: {m}", self.path)))?;
-        columns(py, &hits)
+        Ok(columns.into_result(py))
     }
 }

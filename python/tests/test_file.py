@@ -191,3 +191,32 @@ def test_a_missing_file_is_a_vdag_error(tmp_path):
     assert "missing.vdag" in str(raised.value)
     with pytest.raises(vdag.VdagError):
         vdag.validate(tmp_path / "missing.vdag")
+
+
+@pytest.mark.parametrize("case", VALIDATE_CASES, ids=lambda p: p.name)
+def test_damaged_files_opened_without_validation_raise_vdag_errors_never_panic(case):
+    """Every query on every malformed case either answers or raises a
+    VdagError (a Rust panic would surface as pyo3's PanicException)."""
+    try:
+        dag = vdag.open(case, validate=False)
+    except vdag.InvalidFileError as e:
+        assert e.code and e.code.startswith("E")
+        return
+    rng = np.random.default_rng(1)
+    probes = rng.integers(0, dag.resolution, size=(200, 3))
+    origins = rng.uniform(-1, 2, size=(200, 3)) * dag.root_size + np.asarray(dag.root_min)
+    directions = rng.normal(size=(200, 3))
+    queries = [
+        dag.voxels,
+        lambda: list(dag.iter_voxels(chunk=16)),
+        lambda: dag.contains(probes),
+        lambda: dag.attribute_index(probes),
+        dag.colors,
+        lambda: dag.trace(origins, directions),
+        lambda: dag.levels,
+    ]
+    for query in queries:
+        try:
+            query()
+        except vdag.VdagError:
+            pass

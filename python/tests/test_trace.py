@@ -124,3 +124,24 @@ def test_gpu_backend_as_dagtrace_trace_gpu(sphere_vdag, dagtrace, tmp_path):
     # spec's tolerance; the cells may differ only on exact ties).
     cpu = dag.trace(origins, directions)
     assert (cpu.hit == result.hit).mean() > 0.99
+
+
+def test_the_gil_is_released_while_tracing(sphere_vdag):
+    """Python code runs in another thread while a batch is traced."""
+    dag = vdag.open(sphere_vdag)
+    origins, directions = random_rays(400_000, seed=6)
+    spins = 0
+    done = threading.Event()
+
+    def work():
+        dag.trace(origins, directions)
+        done.set()
+
+    started = threading.Thread(target=work)
+    started.start()
+    while not done.is_set():
+        spins += 1
+    started.join()
+    # Holding the GIL, the trace would let this loop run only between Python
+    # bytecodes of the other thread: a handful of switch intervals at most.
+    assert spins > 10_000, spins

@@ -379,9 +379,9 @@ struct ConvertArgs {
     #[arg(long, value_enum, default_value_t = AttributesArg::Counts, conflicts_with = "colors")]
     attributes: AttributesArg,
     /// The format version to write: 1 (default: every tracer reads it) or 2
-    /// (spec §23: symmetry-aware records, about half the size; the tracers
-    /// do not read it yet — `dagtool upgrade --format-version 1` turns it
-    /// back into 1.0).
+    /// (spec §23: symmetry-aware records, about half the size; `dagtrace`
+    /// traces it on the CPU, the GPU tracer does not read it yet —
+    /// `dagtool upgrade --format-version 1` turns it back into 1.0).
     #[arg(long, value_name = "1|2", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=2))]
     format_version: u16,
     /// With --colors: store them packed (a PACKED_COLORS section, about a

@@ -341,12 +341,72 @@ fn pick_gpu(
     }
 }
 
+/// The file's DAG, either format version (spec §4.2): a 1.x file as a
+/// [`Dag`] for every back end, a 2.0 file's levels for the CPU tracer (the
+/// GPU tracer reads 1.x only).
+enum Opened<'a> {
+    V1(Dag<'a>),
+    V2(dagfmt::Dag2<'a>),
+}
+
+impl<'a> Opened<'a> {
+    fn open(bytes: &'a [u8], path: &Path) -> Result<Self, Failure> {
+        match dagfmt::AnyDag::open(bytes) {
+            Ok(dagfmt::AnyDag::V1(dag)) => Ok(Opened::V1(dag)),
+            Ok(dagfmt::AnyDag::V2(dag)) => Ok(Opened::V2(dag)),
+            Err(e) => Err(Failure(format!("{}: {e}", path.display()))),
+        }
+    }
+
+    fn depth(&self) -> u8 {
+        match self {
+            Opened::V1(d) => d.header().depth,
+            Opened::V2(d) => d.header().depth,
+        }
+    }
+
+    fn tracer(&self, path: &Path) -> Result<Tracer<'a>, Failure> {
+        match self {
+            Opened::V1(d) => Tracer::new(d),
+            Opened::V2(d) => Tracer::from_v2_levels(d.header(), d.levels(), d.color_table()),
+        }
+        .map_err(|e| Failure(format!("{}: {e}", path.display())))
+    }
+
+    /// The GPU tracer, if the back end asks for one: a 2.0 file is traced on
+    /// the CPU (with `--backend auto`) or refused (`--backend gpu`).
+    fn gpu(
+        &self,
+        backend: &BackendArgs,
+        compute_index: bool,
+    ) -> Result<Option<GpuBackend>, Failure> {
+        match self {
+            Opened::V1(d) => pick_gpu(d, backend, compute_index),
+            Opened::V2(_) => match backend.backend {
+                BackendArg::Gpu => fail(
+                    "--backend gpu: the GPU tracer reads format 1 files only; use --backend cpu, or `dagtool upgrade FILE -o OUT --format-version 1`",
+                ),
+                _ => pick_gpu_for_v2(backend),
+            },
+        }
+    }
+}
+
+/// `pick_gpu` for a 2.0 file with `--backend cpu` or `auto`: the CPU tracer.
+fn pick_gpu_for_v2(backend: &BackendArgs) -> Result<Option<GpuBackend>, Failure> {
+    if backend.backend == BackendArg::Auto {
+        eprintln!("dagtrace: format 2.0 file: tracing on the CPU (the GPU tracer reads format 1)");
+    } else if backend.short_stack.is_some() {
+        return fail("--short-stack applies to the GPU tracer only (use --backend gpu)");
+    }
+    Ok(None)
+}
+
 fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
     check_output(&args.output, args.open.force)?;
     let source = open_source(&args.file, !args.open.no_validate)?;
-    let dag =
-        Dag::open(source.bytes()).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
-    let depth = dag.header().depth;
+    let dag = Opened::open(source.bytes(), &args.file)?;
+    let depth = dag.depth();
     if let Some(level) = args.level
         && !(1..=depth).contains(&level)
     {
@@ -354,7 +414,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
             "--level {level} is outside 1..={depth} (the file's depth)"
         ));
     }
-    let tracer = Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
+    let tracer = dag.tracer(&args.file)?;
     let aspect = f64::from(args.width) / f64::from(args.height);
     let camera = match (args.camera_pos, args.look_at) {
         (Some(position), Some(look_at)) => Camera {
@@ -365,7 +425,15 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
         },
         _ => Camera {
             fov_y_degrees: args.fov,
-            ..Camera::automatic(&dag, aspect)
+            ..match &dag {
+                Opened::V1(d) => Camera::automatic(d, aspect),
+                Opened::V2(d) => match tracer.occupied_box() {
+                    Some((lo, hi)) => Camera::looking_at_box(lo, hi, aspect),
+                    None => {
+                        Camera::looking_at_cube(d.header().root_min, d.header().root_size, aspect)
+                    }
+                },
+            }
         },
     };
     let frame = camera.frame()?;
@@ -386,7 +454,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
             if let Some((flag, _)) = lit_flags.iter().find(|(_, given)| *given) {
                 return fail(format!("{flag} applies to --shade lit only"));
             }
-            match pick_gpu(&dag, &args.backend, shade == Shade::Color)? {
+            match dag.gpu(&args.backend, shade == Shade::Color)? {
                 None => render(&tracer, &frame, args.width, args.height, shade, args.level)
                     .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
                 Some(gpu) => {
@@ -407,7 +475,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
                 samples: args.samples.unwrap_or(defaults.samples),
             };
             options.check()?;
-            match pick_gpu(&dag, &args.backend, tracer.colors().is_some())? {
+            match dag.gpu(&args.backend, tracer.colors().is_some())? {
                 None => render_lit(
                     &tracer,
                     &frame,
@@ -464,20 +532,17 @@ fn lit_on_gpu(
 fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {
     check_output(&args.output, args.open.force)?;
     let source = open_source(&args.file, !args.open.no_validate)?;
-    let dag =
-        Dag::open(source.bytes()).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?;
-    let depth = dag.header().depth;
+    let dag = Opened::open(source.bytes(), &args.file)?;
+    let depth = dag.depth();
     let rays_failure = |e: &dyn std::fmt::Display| Failure(format!("{}: {e}", args.rays.display()));
     let file = File::open(&args.rays).map_err(|e| rays_failure(&e))?;
     let length = file.metadata().map_err(|e| rays_failure(&e))?.len();
     let mut reader = RayReader::new(BufReader::with_capacity(1 << 20, file), Some(length))
         .map_err(|e| rays_failure(&e))?;
-    let gpu = pick_gpu(&dag, &args.backend, true)?;
+    let gpu = dag.gpu(&args.backend, true)?;
     let cpu = match gpu {
         Some(_) => None,
-        None => {
-            Some(Tracer::new(&dag).map_err(|e| Failure(format!("{}: {e}", args.file.display())))?)
-        }
+        None => Some(dag.tracer(&args.file)?),
     };
     let started = std::time::Instant::now();
     // The batch streams through in chunks: rays read, traced and their hits

@@ -650,6 +650,23 @@ impl<'a> Tracer<'a> {
         self.depth
     }
 
+    /// World-space box of the occupied cells of level `min(6, leaf level)`
+    /// (the box `camera::occupied_box` gives for a 1.0 file), or `None` for
+    /// an empty volume or a damaged one; for either format version.
+    pub fn occupied_box(&self) -> Option<([f64; 3], [f64; 3])> {
+        if self.empty {
+            return None;
+        }
+        let level = 6.min(self.leaf_level);
+        let (lo, hi) = self.occupied_cells(level)?;
+        // Grid units per cell of `level`, then world units per grid unit.
+        let cell = f64::from(1u32 << (self.depth - level)) / self.grid_scale;
+        Some((
+            [0, 1, 2].map(|i| self.root_min[i] + f64::from(lo[i]) * cell),
+            [0, 1, 2].map(|i| self.root_min[i] + f64::from(hi[i]) * cell),
+        ))
+    }
+
     /// The voxel colours (raw or packed, by dense index), if any.
     pub fn colors(&self) -> Option<ColorTable<'a>> {
         self.colors

@@ -402,3 +402,89 @@ fn sample_ray(i: u64) -> Ray {
     let target = [3.0, 0.0, 2.5];
     Ray::new(origin, [0, 1, 2].map(|k| target[k] - origin[k]))
 }
+
+/// A format 2.0 file (spec §23) through the command line: `trace` writes the
+/// hits of its 1.0 file byte for byte on every conformance trace case tried,
+/// `render` the same picture, and `--backend gpu` is refused in one line (the
+/// GPU tracer reads format 1 only).
+#[test]
+fn format_2_files_trace_and_render_like_their_1_0_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = Path::new(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
+    let mut traced = 0;
+    let names = [
+        "checker-d3",
+        "checker2-d4",
+        "corner-5-d3",
+        "lod-blobs-d6",
+        "mesh-sphere-d6",
+        "mesh-torus-d6",
+        "random-offset-root-d6",
+        "random-sparse-d6",
+        "saturated-full-d9",
+    ];
+    for name in names {
+        let v1 = cases.join(format!("{name}.vdag"));
+        let bytes = std::fs::read(&v1).unwrap();
+        let v2 = dir.path().join(format!("{name}-2.vdag"));
+        let upgraded = dagfmt::v2file::upgrade(&Dag::open(&bytes).unwrap()).unwrap();
+        assert_eq!(u16::from_le_bytes([upgraded[8], upgraded[9]]), 2);
+        std::fs::write(&v2, upgraded).unwrap();
+        let rays = v1.with_extension("rays");
+        let mut hits = Vec::new();
+        for file in [&v1, &v2] {
+            let out_path = dir.path().join(format!("{name}-{}.hits", hits.len()));
+            let out = dagtrace(&[
+                "trace",
+                s(file),
+                "--rays",
+                s(&rays),
+                "--out",
+                s(&out_path),
+                "--format",
+                "binary",
+                "--backend",
+                "cpu",
+            ]);
+            assert!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            hits.push(std::fs::read(&out_path).unwrap());
+        }
+        assert_eq!(hits[0], hits[1], "{name}: 2.0 hits differ from 1.0");
+        traced += 1;
+    }
+    assert_eq!(traced, names.len());
+    // A picture, and the GPU refusal.
+    let v1 = cases.join("checker2-d4.vdag");
+    let v2 = dir.path().join("checker2-d4-2.vdag");
+    let mut pictures = Vec::new();
+    for file in [&v1, &v2] {
+        let png = dir.path().join(format!("p{}.png", pictures.len()));
+        let out = dagtrace(&[
+            "render",
+            s(file),
+            "-o",
+            s(&png),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--backend",
+            "cpu",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        pictures.push(std::fs::read(&png).unwrap());
+    }
+    assert_eq!(pictures[0], pictures[1], "2.0 render differs from 1.0");
+    let png = dir.path().join("gpu.png");
+    let out = dagtrace(&["render", s(&v2), "-o", s(&png), "--backend", "gpu"]);
+    assert_one_line_error(&out, "reads format 1 files only");
+    assert!(!png.exists());
+}

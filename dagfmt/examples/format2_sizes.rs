@@ -104,27 +104,10 @@ fn bytes_for(value: u64) -> u64 {
 fn encoded_bytes(dag: &SymDag, scheme: Scheme, tbits: u32) -> u64 {
     let leaf_level = dag.node_levels.len();
     // Address of each class of the level below, in that level's units.
-    let order = |counts: &[u64]| -> Vec<u32> {
-        let mut idx: Vec<u32> = (0..counts.len() as u32).collect();
-        idx.sort_by(|&a, &b| counts[b as usize].cmp(&counts[a as usize]).then(a.cmp(&b)));
-        idx
-    };
-    let counts_of = |level: usize, n: usize| -> Vec<u64> {
-        let mut c = vec![0u64; n];
-        if level > 0 {
-            for node in &dag.node_levels[level - 1] {
-                for s in 0..8 {
-                    if let Some(r) = node.child(s) {
-                        c[r.class as usize] += 1;
-                    }
-                }
-            }
-        }
-        c
-    };
     let mut total = 8 * dag.leaves.len() as u64;
     let mut addr = vec![0u64; dag.leaves.len()];
-    for (pos, &class) in order(&counts_of(leaf_level, dag.leaves.len()))
+    for (pos, &class) in dag
+        .classes_by_reference_count(leaf_level)
         .iter()
         .enumerate()
     {
@@ -147,7 +130,7 @@ fn encoded_bytes(dag: &SymDag, scheme: Scheme, tbits: u32) -> u64 {
         }
         let mut next_addr = vec![0u64; nodes.len()];
         let mut offset = 0u64;
-        for &class in &order(&counts_of(level, nodes.len())) {
+        for &class in &dag.classes_by_reference_count(level) {
             let node = &nodes[class as usize];
             let mut size = 0u64;
             let mut k = 0u64;

@@ -223,6 +223,16 @@ pub enum ColorTable<'a> {
 }
 
 impl<'a> ColorTable<'a> {
+    /// The colour table of a file's colour sections: the raw section if it
+    /// has one (a valid file holds at most one of the two), else the packed one.
+    pub fn from_sections(raw: Option<&'a [u8]>, packed: Option<PackedColors<'a>>) -> Option<Self> {
+        match (raw, packed) {
+            (Some(raw), _) => Some(ColorTable::Raw(raw)),
+            (None, Some(p)) => Some(ColorTable::Packed(p)),
+            (None, None) => None,
+        }
+    }
+
     /// Colours held.
     pub fn len(&self) -> u64 {
         match self {
@@ -1189,11 +1199,7 @@ impl<'a> Dag<'a> {
 
     /// The voxel colours, raw or packed, if the file has any.
     pub fn color_table(&self) -> Option<ColorTable<'a>> {
-        match (self.colors, self.packed) {
-            (Some(raw), _) => Some(ColorTable::Raw(raw)),
-            (None, Some(p)) => Some(ColorTable::Packed(p)),
-            (None, None) => None,
-        }
+        ColorTable::from_sections(self.colors, self.packed)
     }
 
     /// The root node, or `None` for an empty volume.

@@ -286,7 +286,11 @@ pub fn canonicalize(
     // Leaves: 1.0 leaf index -> reference to a class.
     let mut leaves = Vec::new();
     let mut refs: Vec<ClassRef> = Vec::new();
-    let mut words: Vec<u32> = Vec::new();
+    // For an interior level below: `node_at_word[w]` is the ordinal (index in
+    // `refs`) of the node whose record starts at word `w`, `u32::MAX` where
+    // none does. One lookup per pointer, where a search of the sorted offsets
+    // took a cache miss per step.
+    let mut node_at_word: Vec<u32> = Vec::new();
     // Per class of the level below: its stabiliser, as a bit set of the
     // transforms that leave its stored member unchanged. References to a
     // symmetric class are normalised to the least transform of their coset,
@@ -331,12 +335,16 @@ pub fn canonicalize(
         let mut classes: HashMap<NodeKey, u32, FxBuildHasher> = HashMap::default();
         let mut stored: Vec<NodeKey> = Vec::new();
         // For the level above, which names these nodes by 1.0 word offset:
-        // the offsets (increasing, as the walk goes) and their references.
-        let mut next_words: Vec<u32> = Vec::new();
+        // each node's ordinal by its offset, and each node's reference.
+        let units = section.units();
+        let mut next_node_at_word: Vec<u32> = if level > 0 {
+            vec![u32::MAX; units as usize]
+        } else {
+            Vec::new()
+        };
         let mut next_refs: Vec<ClassRef> = Vec::new();
         let mut next_stabs: Vec<u64> = Vec::new();
         let mut word = 0u64;
-        let units = section.units();
         while word < units {
             let node = dag.node(level as u8, word as u32)?;
             let mut key = NodeKey {
@@ -351,7 +359,10 @@ pub fn canonicalize(
                     let r = if level + 1 == leaf_level {
                         refs.get(p as usize).copied()
                     } else {
-                        words.binary_search(&p).ok().map(|i| refs[i])
+                        node_at_word
+                            .get(p as usize)
+                            .filter(|&&i| i != u32::MAX)
+                            .map(|&i| refs[i as usize])
                     };
                     let Some(r) = r else {
                         return Err(FormatError::new(
@@ -366,46 +377,49 @@ pub fn canonicalize(
                     });
                 }
             }
-            // The forms under every transform of the group (the root: itself).
+            // The least form under the transforms of the group (the root:
+            // itself), the first transform reaching it on ties.
             let order = if level == 0 { 1 } else { node_group.order() };
-            let forms: Vec<NodeKey> = (0..order)
-                .map(|t| {
-                    let mut k = NodeKey {
-                        slots: [0; 8],
-                        attribute: key.attribute,
-                    };
-                    for slot in 0..8u8 {
-                        if let Some(r) = key.child(usize::from(slot)) {
-                            k.slots[usize::from(tables.octant(t, slot))] =
-                                NodeKey::encode(ClassRef {
-                                    class: r.class,
-                                    transform: normalize(
-                                        &tables,
-                                        tables.compose(t, r.transform),
-                                        stabs[r.class as usize],
-                                    ),
-                                });
-                        }
-                    }
-                    k
+            let (t, ties) = least_form(order, |u, j| {
+                // Slot j of form u holds the child at the slot u moves to j.
+                let slot = tables.octant(tables.inverse(u), j);
+                key.child(usize::from(slot)).map_or(0, |r| {
+                    NodeKey::encode(ClassRef {
+                        class: r.class,
+                        transform: normalize(
+                            &tables,
+                            tables.compose(u, r.transform),
+                            stabs[r.class as usize],
+                        ),
+                    })
                 })
-                .collect();
-            let (t, canon) = forms
-                .iter()
-                .enumerate()
-                .min_by(|a, b| a.1.cmp(b.1).then(a.0.cmp(&b.0)))
-                .map(|(t, k)| (t as u8, *k))
-                .expect("at least the identity");
+            });
+            let mut canon = NodeKey {
+                slots: [0; 8],
+                attribute: key.attribute,
+            };
+            for slot in 0..8u8 {
+                if let Some(r) = key.child(usize::from(slot)) {
+                    canon.slots[usize::from(tables.octant(t, slot))] = NodeKey::encode(ClassRef {
+                        class: r.class,
+                        transform: normalize(
+                            &tables,
+                            tables.compose(t, r.transform),
+                            stabs[r.class as usize],
+                        ),
+                    });
+                }
+            }
             let next = classes.len() as u32;
             let class = *classes.entry(canon).or_insert_with(|| {
                 stored.push(canon);
+                // The transforms that leave the stored form unchanged: those
+                // from it back to a form equal to it.
                 let back = tables.inverse(t);
                 next_stabs.push(
-                    forms
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, f)| **f == canon)
-                        .fold(0u64, |a, (u, _)| a | 1 << tables.compose(u as u8, back)),
+                    (0..order)
+                        .filter(|&u| ties >> u & 1 != 0)
+                        .fold(0u64, |a, u| a | 1 << tables.compose(u, back)),
                 );
                 next
             });
@@ -413,13 +427,15 @@ pub fn canonicalize(
                 class,
                 transform: tables.inverse(t),
             };
-            next_words.push(word as u32);
+            if level > 0 {
+                next_node_at_word[word as usize] = next_refs.len() as u32;
+            }
             next_refs.push(r);
             word += node.record_size() / 4;
         }
         node_levels[level] = stored;
         refs = next_refs;
-        words = next_words;
+        node_at_word = next_node_at_word;
         stabs = next_stabs;
     }
     Ok(SymDag {
@@ -430,9 +446,48 @@ pub fn canonicalize(
     })
 }
 
+/// The least of the forms `0..order` (at most 64) of a node, compared slot
+/// by slot as [`NodeKey`] orders them (the attribute is the same in every
+/// form), where `slot(u, j)` is slot j of form u. Returns the first form
+/// reaching the least value and the bit set of every form equal to it.
+/// Compares only as far as ties remain: most nodes are decided by their
+/// first slots, so this reads a few slots of each form, not all eight.
+pub(crate) fn least_form(order: u8, mut slot: impl FnMut(u8, u8) -> u64) -> (u8, u64) {
+    let mut candidates = if order >= 64 {
+        u64::MAX
+    } else {
+        (1u64 << order) - 1
+    };
+    for j in 0..8u8 {
+        if candidates.count_ones() == 1 {
+            break;
+        }
+        let mut least = u64::MAX;
+        let mut reaching = 0u64;
+        let mut rest = candidates;
+        while rest != 0 {
+            let u = rest.trailing_zeros() as u8;
+            rest &= rest - 1;
+            let v = slot(u, j);
+            if v < least {
+                least = v;
+                reaching = 1 << u;
+            } else if v == least {
+                reaching |= 1 << u;
+            }
+        }
+        candidates = reaching;
+    }
+    (candidates.trailing_zeros() as u8, candidates)
+}
+
 /// The least transform of the coset `t ∘ stab`: the references `t ∘ s`,
 /// `s` in the stabiliser of the target, all name the same logical child.
 fn normalize(tables: &Transforms, t: u8, stab: u64) -> u8 {
+    // Most classes have no symmetry: only the identity leaves them unchanged.
+    if stab == 1 {
+        return t;
+    }
     (0..48u8)
         .filter(|&s| stab >> s & 1 != 0)
         .map(|s| tables.compose(t, s))
@@ -441,6 +496,37 @@ fn normalize(tables: &Transforms, t: u8, stab: u64) -> u8 {
 }
 
 impl SymDag {
+    /// How many references of the level above name each class of `level`:
+    /// interior levels are `0..node_levels.len()` (root first), the leaves are
+    /// level `node_levels.len()`. The root level has no references (all 0).
+    pub fn reference_counts(&self, level: usize) -> Vec<u64> {
+        let n = match self.node_levels.get(level) {
+            Some(nodes) => nodes.len(),
+            None => self.leaves.len(),
+        };
+        let mut counts = vec![0u64; n];
+        if level > 0 {
+            for node in &self.node_levels[level - 1] {
+                for slot in 0..8 {
+                    if let Some(r) = node.child(slot) {
+                        counts[r.class as usize] += 1;
+                    }
+                }
+            }
+        }
+        counts
+    }
+
+    /// The classes of `level` (as in [`SymDag::reference_counts`]) by
+    /// decreasing reference count, ties in class order: the order in which
+    /// reference-ordered encodings store a level.
+    pub fn classes_by_reference_count(&self, level: usize) -> Vec<u32> {
+        let counts = self.reference_counts(level);
+        let mut classes: Vec<u32> = (0..counts.len() as u32).collect();
+        classes.sort_by(|&a, &b| counts[b as usize].cmp(&counts[a as usize]).then(a.cmp(&b)));
+        classes
+    }
+
     /// The Morton codes (§11) of the voxels the merged DAG describes, in
     /// increasing order: each stored subtree is expanded through the
     /// transforms of the references that reach it. Memoises nothing: for

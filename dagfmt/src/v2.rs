@@ -15,7 +15,7 @@
 
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::Dag;
-use crate::symmetry::{Group, NodeKey, canonicalize, reflect_leaf};
+use crate::symmetry::{Group, NodeKey, canonicalize, least_form, reflect_leaf};
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 
@@ -400,6 +400,10 @@ type Key = NodeKey;
 
 /// The least reflection in the coset `t ^ stab` (`stab` a bit set of reflections).
 fn norm(t: u8, stab: u8) -> u8 {
+    // Most classes have no symmetry: only the identity leaves them unchanged.
+    if stab == 1 {
+        return t;
+    }
     (0..8u8)
         .filter(|s| stab >> s & 1 != 0)
         .map(|s| t ^ s)
@@ -498,17 +502,22 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
                 new_stab.push(1);
                 continue;
             }
-            let forms: Vec<Key> = (0..8u8).map(|r| reflect_key(&key, r, &stab)).collect();
-            let (best_r, best) = forms
-                .iter()
-                .enumerate()
-                .min_by(|a, b| a.1.cmp(b.1).then(a.0.cmp(&b.0)))
-                .map(|(r, k)| (r as u8, *k))
-                .expect("eight forms");
+            // The least of the 8 reflected forms, the first reflection reaching
+            // it on ties; slot j of form r holds the child at slot j ^ r.
+            let (best_r, ties) = least_form(8, |r, j| {
+                let s = key.slots[usize::from(j ^ r)];
+                if s == 0 {
+                    return 0;
+                }
+                let rank = (s - 1) >> 3;
+                let t = norm(((s - 1) & 7) as u8 ^ r, stab[rank as usize]);
+                1 + (rank << 3) + u64::from(t)
+            });
+            let best = reflect_key(&key, best_r, &stab);
             let mut st = 0u8;
-            for (r, f) in forms.iter().enumerate() {
-                if *f == best {
-                    st |= 1 << (r as u8 ^ best_r);
+            for r in 0..8u8 {
+                if ties >> r & 1 != 0 {
+                    st |= 1 << (r ^ best_r);
                 }
             }
             keys.push(best);
@@ -551,6 +560,12 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
     // stored[level]: (rank, reflection applied to the canonical member).
     let mut stored: Vec<Vec<(u32, u8)>> = vec![vec![(0, 0)]];
     let mut seq_first: Vec<Vec<u64>> = Vec::new();
+    // stored_keys[level]: each stored node as stored (its canonical member
+    // reflected), in stored order. Read once here from `canon_levels` in rank
+    // order, which the stored order visits at random (a cache miss a node),
+    // and kept for the layout instead of that level's ranked keys.
+    let class_counts: Vec<usize> = canon_levels.iter().map(Vec::len).collect();
+    let mut stored_keys: Vec<Vec<Key>> = Vec::with_capacity(leaf_level);
     for level in 0..leaf_level {
         let c = &counts[level + 1];
         let mut next: Vec<(u32, u8)> = (0..c.len() as u32)
@@ -559,12 +574,14 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
             .collect();
         next.sort_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
         let mut firsts = Vec::with_capacity(stored[level].len());
+        let mut keys = Vec::with_capacity(stored[level].len());
         for &(rank, applied) in &stored[level] {
             let key = reflect_key(
                 &canon_levels[level][rank as usize],
                 applied,
                 &stabs[level + 1],
             );
+            keys.push(key);
             firsts.push(next.len() as u64);
             for &s in &key.slots {
                 if s != 0 {
@@ -577,6 +594,8 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
         }
         seq_first.push(firsts);
         stored.push(next);
+        stored_keys.push(keys);
+        canon_levels[level] = Vec::new();
     }
 
     // Bottom-up layout.
@@ -608,17 +627,15 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
     };
     for level in (0..leaf_level).rev() {
         let c = &counts[level + 1];
-        // Each record's references: (code placeholder, value, is base).
-        let mut records: Vec<(u32, Vec<Option<u64>>, Option<u64>)> = Vec::new();
+        // Each record: its header, the end of its children's references in
+        // `refs` (physical slot order, `None` for a sequential child) and its
+        // base reference. Flat, so that a level allocates a few times, not
+        // once per record.
+        let mut records: Vec<(u32, usize, Option<u64>)> = Vec::with_capacity(stored[level].len());
+        let mut refs: Vec<Option<u64>> = Vec::new();
         let mut hist = [0u64; 65];
         let bits_of = |v: u64| (64 - v.leading_zeros()).max(1);
-        for (pos, &(rank, applied)) in stored[level].iter().enumerate() {
-            let key = reflect_key(
-                &canon_levels[level][rank as usize],
-                applied,
-                &stabs[level + 1],
-            );
-            let mut refs = Vec::new();
+        for (pos, key) in stored_keys[level].iter().enumerate() {
             let mut mask = 0u8;
             let mut any_seq = false;
             for (p, &s) in key.slots.iter().enumerate() {
@@ -640,7 +657,7 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
             if let Some(b) = base {
                 hist[bits_of(b) as usize] += 1;
             }
-            records.push((u32::from(mask) | (key.attribute << 8), refs, base));
+            records.push((u32::from(mask) | (key.attribute << 8), refs.len(), base));
         }
         let widths = best_widths(&hist).ok_or_else(|| {
             FormatError::new(
@@ -659,29 +676,32 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
         };
         let mut bytes = Vec::new();
         let mut next_addr_of_pos = Vec::with_capacity(records.len());
-        let mut next_addr_of_rank = vec![0u64; canon_levels[level].len()];
-        for (pos, (header, refs, base)) in records.iter().enumerate() {
+        let mut next_addr_of_rank = vec![0u64; class_counts[level]];
+        let mut first = 0usize;
+        for (pos, &(header, end, base)) in records.iter().enumerate() {
+            let record_refs = &refs[first..end];
+            first = end;
             let offset = bytes.len() as u64;
             next_addr_of_pos.push(offset);
             let (rank, _) = stored[level][pos];
             if level == 0 || counts[level][rank as usize] > 1 {
                 next_addr_of_rank[rank as usize] = offset;
             }
-            let mut w = BitWriter::default();
-            for r in refs {
+            bytes.extend_from_slice(&header.to_le_bytes());
+            let mut w = BitWriter::new(&mut bytes);
+            for r in record_refs {
                 w.put(u64::from(r.map_or(0, |v| code_of(v).0)), 2);
             }
             if let Some(b) = base {
-                w.put(u64::from(code_of(*b).0), 2);
+                w.put(u64::from(code_of(b).0), 2);
             }
-            for v in refs.iter().flatten() {
-                w.put(*v, code_of(*v).1);
+            for &v in record_refs.iter().flatten() {
+                w.put(v, code_of(v).1);
             }
             if let Some(b) = base {
-                w.put(*b, code_of(*b).1);
+                w.put(b, code_of(b).1);
             }
-            bytes.extend_from_slice(&header.to_le_bytes());
-            bytes.extend_from_slice(&w.bytes);
+            w.finish();
         }
         levels[level] = EncodedLevel {
             item_count: records.len() as u64,
@@ -722,23 +742,41 @@ pub fn best_widths(hist: &[u64; 65]) -> Option<[u8; 3]> {
     best.map(|(w, _)| w)
 }
 
-#[derive(Default)]
-struct BitWriter {
-    bytes: Vec<u8>,
-    bit: u64,
+/// Appends a record's bit stream to a level's bytes, least significant bit
+/// first (§23.2), a byte at a time.
+struct BitWriter<'a> {
+    bytes: &'a mut Vec<u8>,
+    /// Bits not yet written, least significant first; fewer than 8 between calls.
+    pending: u64,
+    pending_bits: u32,
 }
 
-impl BitWriter {
+impl<'a> BitWriter<'a> {
+    fn new(bytes: &'a mut Vec<u8>) -> Self {
+        BitWriter {
+            bytes,
+            pending: 0,
+            pending_bits: 0,
+        }
+    }
+
+    /// Writes the low `width` bits of `value`, `width` ≤ 56.
     fn put(&mut self, value: u64, width: u32) {
-        for i in 0..width {
-            if self.bit.is_multiple_of(8) {
-                self.bytes.push(0);
-            }
-            if value >> i & 1 != 0 {
-                let last = self.bytes.len() - 1;
-                self.bytes[last] |= 1 << (self.bit % 8);
-            }
-            self.bit += 1;
+        debug_assert!(width <= 56 && self.pending_bits < 8);
+        let value = value & ((1u64 << width) - 1);
+        self.pending |= value << self.pending_bits;
+        self.pending_bits += width;
+        while self.pending_bits >= 8 {
+            self.bytes.push(self.pending as u8);
+            self.pending >>= 8;
+            self.pending_bits -= 8;
+        }
+    }
+
+    /// Writes the last partial byte, zero-padded.
+    fn finish(self) {
+        if self.pending_bits > 0 {
+            self.bytes.push(self.pending as u8);
         }
     }
 }

@@ -167,11 +167,7 @@ impl<'a> Dag2<'a> {
 
     /// The voxel colours, raw or packed, if the file has any.
     pub fn color_table(&self) -> Option<ColorTable<'a>> {
-        match (self.colors, self.packed) {
-            (Some(raw), _) => Some(ColorTable::Raw(raw)),
-            (None, Some(p)) => Some(ColorTable::Packed(p)),
-            (None, None) => None,
-        }
+        ColorTable::from_sections(self.colors, self.packed)
     }
 
     /// Calls `leaf` with each non-empty 4³ brick (its Morton prefix: the

@@ -1,7 +1,7 @@
 //! `conformance`: runs the `.vdag` conformance suite (spec/CONFORMANCE.md).
 //!
 //! ```text
-//! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays] [--timeout S]
+//! conformance run [--tracer cpu|gpu [--short-stack N] | --exec 'CMD {dag} {rays} {hits}'] [--binary-rays] [--timeout S] [--format-version 1|2|all]
 //! conformance validate [--exec 'CMD {file}'] [--lenient] [--timeout S]
 //! conformance judge FILE.vdag --rays RAYS (--hits HITS | --exec 'CMD {dag} {rays} {hits}') [--timeout S]
 //! conformance bless [-o DIR]
@@ -21,7 +21,9 @@ use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use conformance::judge::Judge;
-use conformance::suite::{self, ExecTracer, ExecValidator, TraceBackend, ValidateBackend};
+use conformance::suite::{
+    self, ExecTracer, ExecValidator, FormatVersion, TraceBackend, ValidateBackend,
+};
 use conformance::{bless, expect, malformed};
 use dagfmt::batch;
 
@@ -42,6 +44,29 @@ enum TracerKind {
     Cpu,
     /// dagtrace's GPU tracer (wgpu), in process, on the default adapter.
     Gpu,
+}
+
+/// `run --format-version`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum VersionChoice {
+    /// Format 1.0 only (the committed files).
+    #[value(name = "1")]
+    V1,
+    /// Format 2.0 only (the committed files upgraded).
+    #[value(name = "2")]
+    V2,
+    /// Both, 1.0 first.
+    All,
+}
+
+impl VersionChoice {
+    fn versions(self) -> &'static [FormatVersion] {
+        match self {
+            VersionChoice::V1 => &[FormatVersion::V1],
+            VersionChoice::V2 => &[FormatVersion::V2],
+            VersionChoice::All => &FormatVersion::ALL,
+        }
+    }
 }
 
 #[derive(Subcommand, Debug)]
@@ -72,6 +97,10 @@ enum Cmd {
         /// Only cases whose name contains this text.
         #[arg(long, value_name = "TEXT")]
         filter: Option<String>,
+        /// The format versions each case runs in: its committed 1.0 file, the
+        /// same voxels upgraded to 2.0 (reported as `<case>@2.0`), or both.
+        #[arg(long, value_enum, default_value = "all")]
+        format_version: VersionChoice,
     },
     /// Runs every validator case against a validator.
     Validate {
@@ -253,6 +282,7 @@ fn run(cli: Cli) -> Result<bool, String> {
             short_stack,
             cases,
             filter,
+            format_version,
         } => {
             let root = cases.unwrap_or_else(suite::default_cases_dir);
             let backend: Box<dyn TraceBackend> = match (exec, tracer) {
@@ -269,9 +299,11 @@ fn run(cli: Cli) -> Result<bool, String> {
                 }
             };
             let cases = suite::trace_cases(&root, filter.as_deref())?;
-            let outcomes: Vec<_> = cases
+            let outcomes: Vec<_> = format_version
+                .versions()
                 .iter()
-                .map(|c| suite::run_trace_case(c, backend.as_ref()))
+                .flat_map(|&v| cases.iter().map(move |c| (c, v)))
+                .map(|(c, v)| suite::run_trace_case_in(c, backend.as_ref(), v))
                 .collect();
             Ok(suite::report(&outcomes, "rays"))
         }

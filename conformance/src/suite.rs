@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
+use dagfmt::ErrorCode;
 use dagfmt::batch::{self, Hit, Ray};
-use dagfmt::{Dag, ErrorCode};
 
 use crate::bless::{self, TRACE_DIR, VALIDATE_DIR, VALIDATE_INDEX};
 use crate::expect;
@@ -206,9 +206,14 @@ pub struct CpuTracer;
 
 impl TraceBackend for CpuTracer {
     fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
-        let dag = Dag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
-        let tracer =
-            dagtrace::Tracer::new(&dag).map_err(|e| format!("the tracer refuses the file: {e}"))?;
+        let dag = dagfmt::AnyDag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
+        let tracer = match &dag {
+            dagfmt::AnyDag::V1(d) => dagtrace::Tracer::new(d),
+            dagfmt::AnyDag::V2(d) => {
+                dagtrace::Tracer::from_v2_levels(d.header(), d.levels(), d.color_table())
+            }
+        }
+        .map_err(|e| format!("the tracer refuses the file: {e}"))?;
         tracer
             .trace_batch(rays)
             .map_err(|e| format!("tracing failed: {e}"))
@@ -247,7 +252,15 @@ impl GpuTracer {
 
 impl TraceBackend for GpuTracer {
     fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
-        let dag = Dag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
+        let dag = match dagfmt::AnyDag::open(file) {
+            Ok(dagfmt::AnyDag::V1(dag)) => dag,
+            Ok(dagfmt::AnyDag::V2(_)) => {
+                return Err(
+                    "the GPU tracer reads format 1.0 files only (VDAG.md § 23 status)".into(),
+                );
+            }
+            Err(e) => return Err(format!("the file does not open: {e}")),
+        };
         let tracer = dagtrace::gpu::GpuTracer::with_context(&self.context, &dag, &self.options)
             .map_err(|e| format!("the GPU tracer refuses the file: {e}"))?;
         tracer
@@ -431,19 +444,101 @@ impl TraceBackend for ExecTracer {
 /// At most this many failing rays are listed per case.
 pub const MAX_LISTED: usize = 10;
 
-/// Runs one tracer case.
+/// The format version a tracer case is run in (CONFORMANCE.md § 1): the
+/// committed files are 1.0; the same voxels in 2.0 (VDAG.md § 23) are the
+/// committed file upgraded, and every answer expected of the 1.0 file is
+/// expected of it too (the attribute index is the same Morton rank).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FormatVersion {
+    /// The committed file as it is.
+    V1,
+    /// The committed file upgraded to format 2.0 (`dagfmt::upgrade`).
+    V2,
+}
+
+impl FormatVersion {
+    /// Both versions, in the order the runner runs them.
+    pub const ALL: [FormatVersion; 2] = [FormatVersion::V1, FormatVersion::V2];
+
+    /// The name a case run in this version is reported under: the case's own
+    /// name for 1.0, `<case>@2.0` for 2.0.
+    pub fn case_name(self, name: &str) -> String {
+        match self {
+            FormatVersion::V1 => name.to_string(),
+            FormatVersion::V2 => format!("{name}@2.0"),
+        }
+    }
+
+    /// The case file's bytes in this version. A 1.0 file upgrades; a file
+    /// already in this version is returned as it is.
+    pub fn file_bytes(self, file: Vec<u8>) -> Result<Vec<u8>, String> {
+        match (self, dagfmt::AnyDag::open(&file)) {
+            (_, Err(e)) => Err(format!("the case file does not open: {e}")),
+            (FormatVersion::V1, Ok(dagfmt::AnyDag::V1(_)))
+            | (FormatVersion::V2, Ok(dagfmt::AnyDag::V2(_))) => Ok(file),
+            (FormatVersion::V2, Ok(dagfmt::AnyDag::V1(dag))) => dagfmt::v2file::upgrade(&dag)
+                .map_err(|e| format!("the case file does not upgrade to 2.0: {e}")),
+            (FormatVersion::V1, Ok(dagfmt::AnyDag::V2(dag))) => dagfmt::v2file::downgrade(&dag)
+                .map_err(|e| format!("the case file does not downgrade to 1.0: {e}")),
+        }
+    }
+}
+
+/// Runs one tracer case on its committed file (format 1.0).
 pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outcome {
+    run_trace_case_in(case, backend, FormatVersion::V1)
+}
+
+/// Runs one tracer case in `version`: a 2.0 run hands the tracer the upgraded
+/// file (an external tracer gets it as a temporary `.vdag` in `{dag}`) and
+/// judges its answers against the same expectations.
+pub fn run_trace_case_in(
+    case: &TraceCaseFiles,
+    backend: &dyn TraceBackend,
+    version: FormatVersion,
+) -> Outcome {
+    let name = version.case_name(&case.name);
     let read = |p: &Path| std::fs::read(p).map_err(|e| format!("cannot read {}: {e}", p.display()));
     let (file, rays_bytes, expect_text) =
         match (read(&case.dag), read(&case.rays), read(&case.expect)) {
             (Ok(a), Ok(b), Ok(c)) => (a, b, String::from_utf8_lossy(&c).into_owned()),
             (Err(e), _, _) | (_, Err(e), _) | (_, _, Err(e)) => {
-                return Outcome::error(&case.name, e);
+                return Outcome::error(&name, e);
             }
         };
+    let file = match version.file_bytes(file) {
+        Ok(f) => f,
+        Err(e) => return Outcome::error(&name, format!("{}: {e}", case.dag.display())),
+    };
+    // The converted file on disk, for tracers that read a path.
+    let temp = match version {
+        FormatVersion::V1 => None,
+        FormatVersion::V2 => match tempfile::tempdir() {
+            Ok(t) => Some(t),
+            Err(e) => {
+                return Outcome::error(&name, format!("cannot make a temporary directory: {e}"));
+            }
+        },
+    };
+    let converted;
+    let case = match &temp {
+        None => case,
+        Some(dir) => {
+            let path = dir.path().join(format!("{}.vdag", case.name));
+            if let Err(e) = std::fs::write(&path, &file) {
+                return Outcome::error(&name, format!("cannot write {}: {e}", path.display()));
+            }
+            converted = TraceCaseFiles {
+                name: name.clone(),
+                dag: path,
+                ..case.clone()
+            };
+            &converted
+        }
+    };
     let rays = match batch::parse_rays(&rays_bytes) {
         Ok(r) => r,
-        Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.rays.display())),
+        Err(e) => return Outcome::error(&name, format!("{}: {e}", case.rays.display())),
     };
     let expectations = match expect::parse_case(&expect_text) {
         Ok(expect::CaseExpectation::RejectBatch) => {
@@ -456,7 +551,7 @@ pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outc
                 ],
             };
             return Outcome {
-                name: case.name.clone(),
+                name: name.clone(),
                 checked: rays.len(),
                 failures,
             };
@@ -464,15 +559,15 @@ pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outc
         Ok(expect::CaseExpectation::Answers(e)) if e.len() == rays.len() => e,
         Ok(expect::CaseExpectation::Answers(e)) => {
             return Outcome::error(
-                &case.name,
+                &name,
                 format!("{} expectations for {} rays", e.len(), rays.len()),
             );
         }
-        Err(e) => return Outcome::error(&case.name, format!("{}: {e}", case.expect.display())),
+        Err(e) => return Outcome::error(&name, format!("{}: {e}", case.expect.display())),
     };
     let hits = match backend.trace(case, &file, &rays) {
         Ok(h) => h,
-        Err(e) => return Outcome::error(&case.name, e),
+        Err(e) => return Outcome::error(&name, e),
     };
     let mut failures = Vec::new();
     let mut failed = 0usize;
@@ -497,7 +592,7 @@ pub fn run_trace_case(case: &TraceCaseFiles, backend: &dyn TraceBackend) -> Outc
         ));
     }
     Outcome {
-        name: case.name.clone(),
+        name,
         checked: rays.len(),
         failures,
     }

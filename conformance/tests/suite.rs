@@ -10,7 +10,7 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 use conformance::suite::{
-    self, CpuTracer, InProcessValidator, Outcome, TraceBackend, TraceCaseFiles,
+    self, CpuTracer, FormatVersion, InProcessValidator, Outcome, TraceBackend, TraceCaseFiles,
 };
 use conformance::{bless, model};
 use dagfmt::batch::{Hit, Ray};
@@ -72,17 +72,52 @@ fn summary(output: &Output) -> (usize, usize) {
     parsed.unwrap_or_else(|| panic!("the output does not end with `N passed, N failed`:\n{text}"))
 }
 
+/// Every case, in format 1.0 (the committed file) and 2.0 (upgraded).
 #[test]
 fn cpu_tracer_passes_every_case() {
     let cases = suite::trace_cases(committed_cases(), None).expect("committed cases");
     assert!(cases.len() >= 40, "only {} tracer cases", cases.len());
-    let outcomes: Vec<_> = cases
-        .iter()
-        .map(|c| suite::run_trace_case(c, &CpuTracer))
-        .collect();
-    let rays: usize = outcomes.iter().map(|o| o.checked).sum();
-    assert!(rays >= 5000, "only {rays} rays");
-    assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
+    for version in FormatVersion::ALL {
+        let outcomes: Vec<_> = cases
+            .iter()
+            .map(|c| suite::run_trace_case_in(c, &CpuTracer, version))
+            .collect();
+        let rays: usize = outcomes.iter().map(|o| o.checked).sum();
+        assert!(rays >= 5000, "{version:?}: only {rays} rays");
+        assert!(outcomes.iter().all(Outcome::passed), "{}", show(&outcomes));
+    }
+}
+
+/// The 2.0 run really hands the tracer a 2.0 file: the GPU tracer (1.0 only)
+/// refuses every case in 2.0 with one clear line, and the CPU tracer's answers
+/// on the upgraded file are those on the committed one, hit for hit.
+#[test]
+fn the_2_0_run_traces_upgraded_files() {
+    let cases = suite::trace_cases(committed_cases(), Some("random-sparse")).expect("case");
+    let case = &cases[0];
+    let file = std::fs::read(&case.dag).expect("read");
+    let upgraded = FormatVersion::V2.file_bytes(file.clone()).expect("upgrade");
+    assert!(matches!(
+        dagfmt::AnyDag::open(&upgraded),
+        Ok(dagfmt::AnyDag::V2(_))
+    ));
+    let rays = dagfmt::batch::parse_rays(&std::fs::read(&case.rays).expect("rays")).expect("rays");
+    let key = |h: &Hit| (h.hit, h.t.to_bits(), h.voxel, h.level, h.face, h.index);
+    let v1 = CpuTracer.trace(case, &file, &rays).expect("1.0");
+    let v2 = CpuTracer.trace(case, &upgraded, &rays).expect("2.0");
+    assert_eq!(
+        v1.iter().map(key).collect::<Vec<_>>(),
+        v2.iter().map(key).collect::<Vec<_>>()
+    );
+    assert!(v1.iter().filter(|h| h.hit).count() > 10);
+    if let Ok(gpu) = suite::GpuTracer::new(None) {
+        let outcome = suite::run_trace_case_in(case, &gpu, FormatVersion::V2);
+        assert_eq!(outcome.name, format!("{}@2.0", case.name));
+        assert_eq!(
+            outcome.failures,
+            ["the GPU tracer reads format 1.0 files only (VDAG.md § 23 status)"]
+        );
+    }
 }
 
 /// The GPU tracer (full stack and short stack) must pass every case too. Without
@@ -103,6 +138,8 @@ fn gpu_tracer_passes_every_case() {
                 return;
             }
         };
+        // Format 1.0 only: the GPU tracer does not read 2.0 yet (VDAG.md § 23
+        // status; `the_2_0_run_traces_upgraded_files` checks it says so).
         let cases = suite::trace_cases(committed_cases(), None).expect("cases load");
         let outcomes: Vec<_> = cases
             .iter()
@@ -335,11 +372,13 @@ fn runner_reports_broken_external_tracers() {
     let text = stdout(&output);
     assert!(
         text.contains("FAIL full-d4")
+            && text.contains("FAIL full-d4@2.0")
             && text.contains("a hit is required")
             && text.contains("expected: hit 4"),
         "{text}"
     );
-    assert_eq!(summary(&output), (0, 1));
+    // The case in both format versions.
+    assert_eq!(summary(&output), (0, 2));
 }
 
 #[test]
@@ -347,11 +386,22 @@ fn runner_passes_with_the_in_process_tracer() {
     let cases = committed_cases().to_str().expect("UTF-8").to_string();
     let output = run(&["run", "--tracer", "cpu", "--cases", &cases]);
     let (passed, failed) = summary(&output);
+    // Every case in both versions.
     assert!(
-        output.status.success() && failed == 0 && passed >= 40,
+        output.status.success() && failed == 0 && passed >= 80 && passed % 2 == 0,
         "{}",
         stdout(&output)
     );
+    let only_2 = run(&[
+        "run",
+        "--tracer",
+        "cpu",
+        "--cases",
+        &cases,
+        "--format-version",
+        "2",
+    ]);
+    assert_eq!(summary(&only_2), (passed / 2, 0), "{}", stdout(&only_2));
 }
 
 /// Newest modification time of any file under `dir` (recursively).
@@ -426,8 +476,9 @@ fn runner_drives_the_dagtrace_binary() {
         args.extend_from_slice(extra);
         let output = run(&args);
         let (passed, failed) = summary(&output);
+        // Both versions: `dagtrace trace` reads the upgraded 2.0 files too.
         assert!(
-            output.status.success() && failed == 0 && passed >= 40,
+            output.status.success() && failed == 0 && passed >= 80,
             "{format}: {}",
             stdout(&output)
         );

@@ -12,7 +12,9 @@
 //!
 //! The host's share per ray is the f64 set-up (`prepare.rs`, the CPU
 //! tracer's operations, with the usual ray's case analysis folded into one
-//! test: `prepare::setup_usual`) and copying the shader's answer into a [`Hit`]:
+//! test: `prepare::setup_usual`, four rays at a time in AVX2 `f64` vectors
+//! where the processor has it: `setup4.rs`) and copying the shader's answer
+//! into a [`Hit`] (without a branch on whether the ray hit):
 //! the shader computes the cell, the entry parameter, the face and the
 //! attribute index. Only rare rays (see `prepare.rs`) have their answers
 //! computed on the host.

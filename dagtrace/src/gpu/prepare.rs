@@ -11,7 +11,9 @@
 //! does (`batch.wgsl`), so for these rays the host does no more. The batch
 //! path sets these usual rays up with [`setup_usual`]: the same operations
 //! with the case analysis folded into one test, about a quarter less host
-//! CPU time a ray than going through [`setup`] (BENCHMARKS.md).
+//! CPU time a ray than going through [`setup`] (BENCHMARKS.md); where the
+//! processor has AVX2, four rays at a time with the same operations in
+//! `f64` vectors (`setup4.rs`), declining the same rays.
 //!
 //! Rare rays keep the earlier f64 path, and their answers are computed here
 //! from the cell the shader found ([`answer`]): rays with no direction (a

@@ -12,7 +12,9 @@
 //!
 //! The host's share per ray is the f64 set-up (`prepare.rs`, the CPU
 //! tracer's operations, with the usual ray's case analysis folded into one
-//! test: `prepare::setup_usual`) and copying the shader's answer into a [`Hit`]:
+//! test: `prepare::setup_usual`, four rays at a time in AVX2 `f64` vectors
+//! where the processor has it: `setup4.rs`) and copying the shader's answer
+//! into a [`Hit`] (without a branch on whether the ray hit):
 //! the shader computes the cell, the entry parameter, the face and the
 //! attribute index. Only rare rays (see `prepare.rs`) have their answers
 //! computed on the host.
@@ -261,6 +263,7 @@ impl GpuTracer {
         let (mut records, _) = view.slice(..).into_chunks::<{ size_of::<GpuRay>() }>();
         let records = &Records(records.as_raw_element_ptr(), records.len());
         let too_deep = AtomicUsize::new(usize::MAX);
+        let lanes = lanes_available();
         rays.par_chunks(TASK_RAYS)
             .zip(hits.par_chunks_mut(TASK_RAYS))
             .enumerate()
@@ -278,7 +281,7 @@ impl GpuTracer {
                         rays.len(),
                     ))
                 };
-                if let Some(k) = set_up_task(&self.frame, rays, hits, out) {
+                if let Some(k) = set_up_task(&self.frame, rays, hits, out, lanes) {
                     too_deep.fetch_min(first + k, Ordering::Relaxed);
                 }
             });
@@ -388,36 +391,27 @@ impl GpuTracer {
                 {
                     let r: GpuHit = bytemuck::pod_read_unaligned(record);
                     let info = r.cell[3];
-                    if info & INFO_SKIPPED != 0 {
+                    if info & (INFO_SKIPPED | INFO_EXHAUSTED | INFO_MALFORMED | INFO_HOST_ANSWER)
+                        != 0
+                    {
+                        // Rare: answered on the host, a fault, or `t` and
+                        // the face left to the host.
+                        if info & INFO_SKIPPED != 0 {
+                            continue;
+                        }
+                        sums.0 += 1;
+                        sums.1 += u64::from(r.iterations);
+                        sums.2 = sums.2.max(r.iterations);
+                        if info & (INFO_EXHAUSTED | INFO_MALFORMED) != 0 {
+                            sums.3 = sums.3.or(Some((task * TASK_RAYS + k, info)));
+                        }
+                        *hit = rare_answer(frame, ray, &r);
                         continue;
                     }
                     sums.0 += 1;
                     sums.1 += u64::from(r.iterations);
                     sums.2 = sums.2.max(r.iterations);
-                    if info & (INFO_EXHAUSTED | INFO_MALFORMED) != 0 {
-                        sums.3 = sums.3.or(Some((task * TASK_RAYS + k, info)));
-                    }
-                    if info & INFO_HIT == 0 {
-                        *hit = Hit::MISS;
-                        continue;
-                    }
-                    let level = ((info >> INFO_LEVEL_SHIFT) & 0xff) as u8;
-                    let voxel = [r.cell[0], r.cell[1], r.cell[2]];
-                    let (t, face) = if info & INFO_HOST_ANSWER != 0 {
-                        prepare::host_answer(frame, ray, voxel, level)
-                    } else {
-                        (r.t, ((info >> INFO_FACE_SHIFT) & 0xff) as u8)
-                    };
-                    *hit = Hit {
-                        hit: true,
-                        t,
-                        voxel,
-                        level,
-                        face,
-                        index: frame
-                            .indexed
-                            .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32),
-                    };
+                    *hit = usual_answer(frame, &r);
                 }
                 sums
             })
@@ -454,18 +448,25 @@ impl GpuTracer {
 }
 
 /// Sets the rays of one task of [`GpuTracer::set_up_chunk`] up into `out`
-/// (one record a ray), answering those that need no DAG into `hits`: with
-/// [`prepare::setup_usual`], and the rays it declines with
+/// (one record a ray), answering those that need no DAG into `hits`: four
+/// at a time with [`setup4::setup4`](super::setup4::setup4) where `lanes`
+/// (the processor has AVX2), otherwise one by one with
+/// [`prepare::setup_usual`], and the rays these decline with
 /// [`prepare::setup`]. Returns the first ray whose level is deeper than the
 /// DAG.
 fn set_up_task(
     frame: &Frame,
     rays: &[Ray],
     hits: &mut [Hit],
-    out: wgpu::WriteOnly<'_, [[u8; size_of::<GpuRay>()]]>,
+    mut out: wgpu::WriteOnly<'_, [[u8; size_of::<GpuRay>()]]>,
+    lanes: bool,
 ) -> Option<usize> {
+    assert!(out.len() == rays.len() && hits.len() == rays.len());
+    let records = out.as_raw_element_ptr();
     let mut too_deep = None;
-    for (k, ((record, ray), hit)) in out.into_iter().zip(rays).zip(hits).enumerate() {
+    // Sets ray `k` up on its own.
+    let mut one = |k: usize, hit: &mut Hit| {
+        let ray = &rays[k];
         let gpu = match prepare::setup_usual(frame, ray) {
             Some(gpu) => gpu,
             None => match prepare::setup(frame, ray) {
@@ -480,9 +481,93 @@ fn set_up_task(
                 }
             },
         };
-        record.write(bytemuck::cast(gpu));
+        // SAFETY: `k < rays.len() == out.len()`: a record of `out`, which
+        // this task alone writes (and never reads).
+        unsafe { records.add(k).write(bytemuck::cast(gpu)) };
+    };
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if lanes {
+        for (block, hits) in rays.chunks_exact(4).zip(hits.chunks_exact_mut(4)) {
+            let block: &[Ray; 4] = block.try_into().expect("four rays");
+            // SAFETY: `lanes` is only set where the processor has AVX2, and
+            // records `done .. done + 4` lie within `out` (`done + 4 <=
+            // rays.len() == out.len()`), written by this task alone.
+            let usual =
+                unsafe { super::setup4::setup4(frame, block, records.add(done).as_ptr().cast()) };
+            if usual != 0b1111 {
+                for (lane, hit) in hits.iter_mut().enumerate() {
+                    if usual & (1 << lane) == 0 {
+                        one(done + lane, hit);
+                    }
+                }
+            }
+            done += 4;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = lanes;
+    for (k, hit) in hits.iter_mut().enumerate().skip(done) {
+        one(k, hit);
     }
     too_deep
+}
+
+/// The answer for a shader's record `r` with neither [`INFO_SKIPPED`],
+/// [`INFO_EXHAUSTED`], [`INFO_MALFORMED`] nor [`INFO_HOST_ANSWER`]: a hit
+/// with the shader's `t` and face, or [`Hit::MISS`]. Without a branch on
+/// whether the ray hit (which random rays would mispredict half the time):
+/// every field is masked by the hit bit.
+#[inline(always)]
+fn usual_answer(frame: &Frame, r: &GpuHit) -> Hit {
+    let info = r.cell[3];
+    let hit = info & INFO_HIT != 0;
+    let keep = 0u32.wrapping_sub(info & INFO_HIT);
+    let index = u64::from(r.index_lo) | u64::from(r.index_hi) << 32;
+    Hit {
+        hit,
+        t: f32::from_bits(r.t.to_bits() & keep),
+        voxel: [r.cell[0] & keep, r.cell[1] & keep, r.cell[2] & keep],
+        level: ((info & keep) >> INFO_LEVEL_SHIFT) as u8,
+        face: ((info & keep) >> INFO_FACE_SHIFT) as u8,
+        index: (frame.indexed & hit).then_some(index),
+    }
+}
+
+/// The answer for a shader's record `r` of `ray` that [`usual_answer`]
+/// does not take (and not [`INFO_SKIPPED`]): `t` and the face computed on
+/// the host when the record says so.
+#[cold]
+fn rare_answer(frame: &Frame, ray: &Ray, r: &GpuHit) -> Hit {
+    let info = r.cell[3];
+    if info & INFO_HIT == 0 {
+        return Hit::MISS;
+    }
+    let level = ((info >> INFO_LEVEL_SHIFT) & 0xff) as u8;
+    let voxel = [r.cell[0], r.cell[1], r.cell[2]];
+    let (t, face) = if info & INFO_HOST_ANSWER != 0 {
+        prepare::host_answer(frame, ray, voxel, level)
+    } else {
+        (r.t, ((info >> INFO_FACE_SHIFT) & 0xff) as u8)
+    };
+    Hit {
+        hit: true,
+        t,
+        voxel,
+        level,
+        face,
+        index: frame
+            .indexed
+            .then_some(u64::from(r.index_lo) | u64::from(r.index_hi) << 32),
+    }
+}
+
+/// Whether the set-up can take four rays at a time (`setup4.rs`).
+fn lanes_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return super::setup4::available();
+    #[cfg(not(target_arch = "x86_64"))]
+    return false;
 }
 
 /// Maps the first `size` bytes of `buffer` for reading once the GPU is done with it.
@@ -501,4 +586,86 @@ fn map_write(buffer: &wgpu::Buffer) -> MapReceiver {
         let _ = sender.send(r);
     });
     receiver
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::prepare::tests::{frames, random_ray};
+    use super::*;
+
+    /// A task's set-up four lanes at a time writes the records and answers
+    /// of the set-up one ray at a time, byte for byte, and finds the same
+    /// first ray too deep, on hostile rays (and a tail shorter than four).
+    #[test]
+    fn set_up_task_with_lanes_is_the_one_by_one_set_up() {
+        if !lanes_available() {
+            eprintln!("no AVX2 here: the four-lane set-up is not used, nothing to check");
+            return;
+        }
+        let mut state = 5u64;
+        for frame in frames() {
+            let rays: Vec<Ray> = (0..40_003)
+                .map(|_| random_ray(&mut state, &frame))
+                .collect();
+            let run = |lanes: bool| {
+                let mut records = vec![[0x5au8; size_of::<GpuRay>()]; rays.len()];
+                let mut hits = vec![Hit::MISS; rays.len()];
+                let too_deep = set_up_task(
+                    &frame,
+                    &rays,
+                    &mut hits,
+                    wgpu::WriteOnly::from_mut(&mut records[..]),
+                    lanes,
+                );
+                (records, format!("{hits:?}"), too_deep)
+            };
+            let (one, lanes) = (run(false), run(true));
+            assert!(one.2.is_some(), "some rays are too deep");
+            assert_eq!(one.2, lanes.2);
+            for (k, (a, b)) in one.0.iter().zip(&lanes.0).enumerate() {
+                assert_eq!(a, b, "{:?} in {frame:?}", rays[k]);
+            }
+            assert!(one.1 == lanes.1, "answers differ in {frame:?}");
+        }
+    }
+
+    /// The branch-free answer is the one with branches (`rare_answer`, the
+    /// answer as it always was) for every record it takes, hit or miss,
+    /// whatever the rest of the record holds, with and without the index.
+    #[test]
+    fn usual_answer_is_the_branching_one() {
+        let mut state = 3u64;
+        let mut next = || {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            z ^ (z >> 31)
+        };
+        let ray = Ray::new([0.0; 3], [1.0; 3]);
+        for indexed in [false, true] {
+            let frame = Frame {
+                indexed,
+                ..frames()[0]
+            };
+            for _ in 0..100_000 {
+                let bits = next();
+                let info = (bits as u32 & INFO_HIT)
+                    | (((bits >> 8) & 0xff) as u32) << INFO_LEVEL_SHIFT
+                    | (((bits >> 16) % 7) as u32) << INFO_FACE_SHIFT;
+                let r = GpuHit {
+                    cell: [next() as u32, next() as u32, next() as u32, info],
+                    t: f32::from_bits(next() as u32),
+                    index_lo: next() as u32,
+                    index_hi: next() as u32,
+                    iterations: next() as u32,
+                };
+                assert_eq!(
+                    format!("{:?}", usual_answer(&frame, &r)),
+                    format!("{:?}", rare_answer(&frame, &ray, &r)),
+                    "{r:?}"
+                );
+            }
+        }
+    }
 }

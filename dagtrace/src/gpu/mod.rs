@@ -48,6 +48,8 @@ mod batch;
 mod layout;
 mod lit;
 mod prepare;
+#[cfg(target_arch = "x86_64")]
+mod setup4;
 mod upload;
 
 use std::collections::HashMap;

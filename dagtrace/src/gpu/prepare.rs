@@ -11,7 +11,9 @@
 //! does (`batch.wgsl`), so for these rays the host does no more. The batch
 //! path sets these usual rays up with [`setup_usual`]: the same operations
 //! with the case analysis folded into one test, about a quarter less host
-//! CPU time a ray than going through [`setup`] (BENCHMARKS.md).
+//! CPU time a ray than going through [`setup`] (BENCHMARKS.md); where the
+//! processor has AVX2, four rays at a time with the same operations in
+//! `f64` vectors (`setup4.rs`), declining the same rays.
 //!
 //! Rare rays keep the earlier f64 path, and their answers are computed here
 //! from the cell the shader found ([`answer`]): rays with no direction (a
@@ -28,7 +30,7 @@ use super::layout::{
 use dagfmt::batch::{Hit, Ray};
 
 /// Direction components below this fraction of the largest count as zero.
-const TINY_DIRECTION: f64 = 1.0 / (1u64 << 60) as f64;
+pub(crate) const TINY_DIRECTION: f64 = 1.0 / (1u64 << 60) as f64;
 
 /// What the shader needs to know about the DAG to set rays up.
 #[derive(Clone, Copy, Debug)]
@@ -441,7 +443,7 @@ fn entry(grid: &GridRay, lo: [f64; 3], hi: [f64; 3]) -> Option<(f64, u8)> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// SplitMix64.
@@ -474,7 +476,8 @@ mod tests {
         }
     }
 
-    fn random_ray(state: &mut u64, frame: &Frame) -> Ray {
+    /// A random ray around `frame`'s cube, often hostile (see [`component`]).
+    pub(crate) fn random_ray(state: &mut u64, frame: &Frame) -> Ray {
         let size = (1u64 << frame.depth) as f64 / frame.grid_scale;
         let origin = std::array::from_fn(|i| component(state, frame.root_min[i], size));
         let dir: [f32; 3] = std::array::from_fn(|_| component(state, 0.0, size));
@@ -515,28 +518,34 @@ mod tests {
         }
     }
 
-    /// `setup_usual` gives the very record `setup` gives for every ray
-    /// `setup` answers in the shader without the host, and declines every
-    /// other ray.
-    #[test]
-    fn usual_set_up_is_setup_to_the_bit() {
-        let frames = [
+    /// Frames of several depths, origins and scales, and an empty one.
+    pub(crate) fn frames() -> Vec<Frame> {
+        [
             (12, [-0.53, 0.0, -1.7e-3], 1.3, false),
             (5, [0.0; 3], 1.0, false),
             (20, [1.0e3, -2.5e4, 7.0], 3.0e-2, false),
             (3, [-1.0, -1.0, -1.0], 7.0, true),
             (24, [0.1, 0.2, 0.3], 1.0e6, false),
-        ];
+        ]
+        .into_iter()
+        .map(|(depth, root_min, root_size, empty)| Frame {
+            depth,
+            root_min,
+            grid_scale: (1u64 << depth) as f64 / root_size,
+            empty,
+            indexed: false,
+        })
+        .collect()
+    }
+
+    /// `setup_usual` gives the very record `setup` gives for every ray
+    /// `setup` answers in the shader without the host, and declines every
+    /// other ray.
+    #[test]
+    fn usual_set_up_is_setup_to_the_bit() {
         let mut state = 7u64;
         let mut usual = 0;
-        for (depth, root_min, root_size, empty) in frames {
-            let frame = Frame {
-                depth,
-                root_min,
-                grid_scale: (1u64 << depth) as f64 / root_size,
-                empty,
-                indexed: false,
-            };
+        for frame in frames() {
             for _ in 0..200_000 {
                 let ray = random_ray(&mut state, &frame);
                 let fast = setup_usual(&frame, &ray);

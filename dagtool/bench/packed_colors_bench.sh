@@ -8,7 +8,8 @@
 # the dagtool and dagtrace binaries, default target/release), WIDTH/HEIGHT (render size,
 # default 1024x768), GPU (1: also render on the GPU, the default adapter; default 1), ENCODE
 # (0: convert each file once, untimed, or reuse the files already in OUT; default 1), BACKENDS
-# (the render back ends, default "cpu gpu", "cpu" with GPU=0).
+# (the render back ends, default "cpu gpu", "cpu" with GPU=0), RENDER_ARGS (more arguments of
+# every render, e.g. --no-validate to time the render without the file's validation).
 #
 # - encode: `dagtool convert spot_textured.obj --depth 12 --colors` with raw colours, with
 #   `--color-error 0` and with `--color-error 8`, RUNS runs interleaved: median wall time and
@@ -87,11 +88,12 @@ for b in "${backends[@]}"; do
     declare -A DEC=()
     for ((r = 0; r < RUNS; r++)); do
         for v in "${variants[@]}"; do
+            # shellcheck disable=SC2086
             DEC[$v]+="$(timed "$BIN/dagtrace" render "$OUT/$v.vdag" --shade color --backend "$b" \
-                --width "$WIDTH" --height "$HEIGHT" -o "$OUT/$v-$b.png" --force) "
+                --width "$WIDTH" --height "$HEIGHT" -o "$OUT/$v-$b.png" --force ${RENDER_ARGS:-}) "
         done
     done
-    echo "### decode: render --shade color ${WIDTH}x$HEIGHT, backend $b, $RUNS runs (load $load0 at the start, $(cut -d' ' -f1-3 /proc/loadavg) at the end)"
+    echo "### decode: render --shade color ${RENDER_ARGS:-}${RENDER_ARGS:+ }${WIDTH}x$HEIGHT, backend $b, $RUNS runs (load $load0 at the start, $(cut -d' ' -f1-3 /proc/loadavg) at the end)"
     echo
     echo "| colours | median s | ratio to raw |"
     echo "|---|---:|---:|"

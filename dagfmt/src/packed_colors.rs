@@ -126,8 +126,8 @@ impl BlockLayout {
 
     /// Bits of a block's offset from its group's first block: the largest
     /// block (a direct block of 32-bit entries and its header) fifteen times
-    /// over must fit.
-    fn offset_bits(self) -> u32 {
+    /// over must fit (O of spec §12.6: 13 for S = 6 and 7, 14 for S = 8).
+    pub fn offset_bits(self) -> u32 {
         if self.shift >= 8 { 14 } else { 13 }
     }
 
@@ -459,6 +459,11 @@ impl<'a> PackedColors<'a> {
     /// The section's bytes.
     pub fn bytes(&self) -> &'a [u8] {
         self.section
+    }
+
+    /// Byte offset of the directory in the section.
+    pub fn directory_offset(&self) -> usize {
+        self.directory
     }
 
     fn layout(&self) -> BlockLayout {

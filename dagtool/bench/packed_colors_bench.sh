@@ -6,14 +6,19 @@
 # Environment: FORMATS (default ../shared/formats beside the repository), RUNS (default 5),
 # OUT (scratch folder, default a temporary folder, removed afterwards), BIN (the folder of
 # the dagtool and dagtrace binaries, default target/release), WIDTH/HEIGHT (render size,
-# default 1024x768), GPU (1: also render on the GPU, the default adapter; default 1).
+# default 1024x768), GPU (1: also render on the GPU, the default adapter; default 1), ENCODE
+# (0: convert each file once, untimed, or reuse the files already in OUT; default 1), BACKENDS
+# (the render back ends, default "cpu gpu", "cpu" with GPU=0), RENDER_ARGS (more arguments of
+# every render, e.g. --no-validate to time the render without the file's validation).
 #
 # - encode: `dagtool convert spot_textured.obj --depth 12 --colors` with raw colours, with
 #   `--color-error 0` and with `--color-error 8`, RUNS runs interleaved: median wall time and
 #   its ratio to raw.
 # - decode: `dagtrace render --shade color` of those three files at depth 12, on the CPU and
 #   (GPU=1) on the GPU, RUNS runs interleaved: median wall time of the whole command and its
-#   ratio to raw. Colours are looked up on the host by the attribute index on both back ends.
+#   ratio to raw. On the CPU the colours are decoded on the host by the attribute index; on the
+#   GPU the colour section lies on the device as stored (compressed for E = 0 and E = 8) and the
+#   colour pass decodes each hit's colour there (dagtrace/src/gpu/colors.wgsl).
 # - sizes: the colour section of each file, from `dagtool info`.
 #
 # Timings on a shared machine vary with its load; the load average is printed with each table.
@@ -41,12 +46,28 @@ timed() { local t0; t0=$(now); "$@" >/dev/null 2>&1 || { echo "failed: $*" >&2; 
 declare -A ENC
 variants=(raw e0 e8)
 flags() { case $1 in raw) echo "--colors";; e0) echo "--colors --color-error 0";; e8) echo "--colors --color-error 8";; esac; }
-for ((r = 0; r < RUNS; r++)); do
+ENC_RUNS=$RUNS
+if [[ ${ENCODE:-1} == 0 ]]; then
+    ENC_RUNS=0
+    for v in "${variants[@]}"; do
+        # shellcheck disable=SC2046
+        [[ -f $OUT/$v.vdag ]] || "$BIN/dagtool" convert "$SRC" --depth 12 $(flags $v) -o "$OUT/$v.vdag" --force -q
+    done
+fi
+for ((r = 0; r < ENC_RUNS; r++)); do
     for v in "${variants[@]}"; do
         # shellcheck disable=SC2046
         ENC[$v]+="$(timed "$BIN/dagtool" convert "$SRC" --depth 12 $(flags $v) -o "$OUT/$v.vdag" --force -q) "
     done
 done
+if [[ $ENC_RUNS == 0 ]]; then
+    echo "### colour sections"
+    echo
+    for v in "${variants[@]}"; do
+        echo "- $v: $("$BIN/dagtool" info "$OUT/$v.vdag" | sed -n 's/^colours: *//p')"
+    done
+    echo
+else
 echo "### encode: spot_textured.obj, depth 12, $RUNS runs (load $(cut -d' ' -f1-3 /proc/loadavg))"
 echo
 echo "| colours | median s | ratio to raw | colour section |"
@@ -58,17 +79,21 @@ for v in "${variants[@]}"; do
     printf '| %s | %.2f | %.3f | %s |\n' "$v" "$med" "$(echo "$med / $raw_med" | bc -l)" "$line"
 done
 echo
+fi
 backends=(cpu)
 [[ $GPU == 1 ]] && backends+=(gpu)
+read -r -a backends <<<"${BACKENDS:-${backends[*]}}"
 for b in "${backends[@]}"; do
+    load0=$(cut -d' ' -f1 /proc/loadavg)
     declare -A DEC=()
     for ((r = 0; r < RUNS; r++)); do
         for v in "${variants[@]}"; do
+            # shellcheck disable=SC2086
             DEC[$v]+="$(timed "$BIN/dagtrace" render "$OUT/$v.vdag" --shade color --backend "$b" \
-                --width "$WIDTH" --height "$HEIGHT" -o "$OUT/$v-$b.png" --force) "
+                --width "$WIDTH" --height "$HEIGHT" -o "$OUT/$v-$b.png" --force ${RENDER_ARGS:-}) "
         done
     done
-    echo "### decode: render --shade color ${WIDTH}x$HEIGHT, backend $b, $RUNS runs (load $(cut -d' ' -f1-3 /proc/loadavg))"
+    echo "### decode: render --shade color ${RENDER_ARGS:-}${RENDER_ARGS:+ }${WIDTH}x$HEIGHT, backend $b, $RUNS runs (load $load0 at the start, $(cut -d' ' -f1-3 /proc/loadavg) at the end)"
     echo
     echo "| colours | median s | ratio to raw |"
     echo "|---|---:|---:|"

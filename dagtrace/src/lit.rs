@@ -301,21 +301,31 @@ pub fn compose(
     options: &LitOptions,
     color: impl Fn(u64) -> Option<[u8; 4]> + Sync,
 ) -> Vec<u8> {
+    compose_with(surfaces, options, |_, s| s.index.and_then(&color))
+}
+
+/// [`compose`] with each surface's colour given by `color(k, surface)`, `k`
+/// the surface's position in `surfaces` (the GPU back end decodes the
+/// colours on the device, one per surface).
+pub fn compose_with(
+    surfaces: &[Surface],
+    options: &LitOptions,
+    color: impl Fn(usize, &Surface) -> Option<[u8; 4]> + Sync,
+) -> Vec<u8> {
     let samples = options.samples.max(1) as usize;
     let sun = options.sun_unit();
     let background = BACKGROUND.map(|c| srgb_to_linear(f32::from(c) / 255.0));
     surfaces
         .par_chunks(samples)
-        .flat_map_iter(|pixel| {
+        .enumerate()
+        .flat_map_iter(|(p, pixel)| {
             if pixel.iter().all(|s| !s.hit) {
                 return BACKGROUND;
             }
             let mut sum = [0f32; 3];
-            for s in pixel {
+            for (j, s) in pixel.iter().enumerate() {
                 let rgb = if s.hit {
-                    let albedo = s
-                        .index
-                        .and_then(&color)
+                    let albedo = color(p * samples + j, s)
                         .map(|c| [c[0], c[1], c[2]].map(|v| srgb_to_linear(f32::from(v) / 255.0)))
                         .unwrap_or(DEFAULT_ALBEDO);
                     shade(s, albedo, sun, options.ao_rays)

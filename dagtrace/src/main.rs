@@ -18,7 +18,7 @@ use dagfmt::output::OutputError;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
 use dagtrace::lit::{LitOptions, render_lit};
-use dagtrace::render::{Shade, render, shade_hits};
+use dagtrace::render::{Shade, render, shade_hits_colored};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -285,20 +285,19 @@ type GpuBackend = dagtrace::gpu::GpuTracer;
 #[cfg(not(feature = "gpu"))]
 enum GpuBackend {}
 
-#[cfg(not(feature = "gpu"))]
-impl GpuBackend {
-    fn trace(&self, _: &[dagfmt::batch::Ray]) -> Result<Vec<dagfmt::batch::Hit>, Failure> {
-        match *self {}
-    }
-}
-
 /// The GPU tracer when the back end asks for one (and one can be made), or
 /// `None` for the CPU. Says on stderr which adapter traces, or why `auto`
 /// fell back to the CPU.
+///
+/// With `colors`, the file's colour section goes to the device as it is
+/// stored (compressed, for PACKED_COLORS), and colours are decoded there; a
+/// section the device cannot hold is refused in one line (`--backend gpu`)
+/// or sends `auto` to the CPU.
 fn pick_gpu(
     dag: &Dag<'_>,
     backend: &BackendArgs,
     compute_index: bool,
+    colors: bool,
 ) -> Result<Option<GpuBackend>, Failure> {
     if backend.backend == BackendArg::Cpu {
         if backend.short_stack.is_some() {
@@ -314,6 +313,7 @@ fn pick_gpu(
                 .short_stack
                 .map_or(StackMode::Full, StackMode::Short),
             compute_index,
+            colors,
             ..GpuOptions::default()
         };
         match GpuTracer::new(dag, &options) {
@@ -333,7 +333,7 @@ fn pick_gpu(
     }
     #[cfg(not(feature = "gpu"))]
     {
-        let _ = (dag, compute_index);
+        let _ = (dag, compute_index, colors);
         if backend.backend == BackendArg::Auto {
             return Ok(None);
         }
@@ -379,9 +379,10 @@ impl<'a> Opened<'a> {
         &self,
         backend: &BackendArgs,
         compute_index: bool,
+        colors: bool,
     ) -> Result<Option<GpuBackend>, Failure> {
         match self {
-            Opened::V1(d) => pick_gpu(d, backend, compute_index),
+            Opened::V1(d) => pick_gpu(d, backend, compute_index, colors),
             Opened::V2(_) => match backend.backend {
                 BackendArg::Gpu => fail(
                     "--backend gpu: the GPU tracer reads format 1 files only; use --backend cpu, or `dagtool upgrade FILE -o OUT --format-version 1`",
@@ -454,15 +455,15 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
             if let Some((flag, _)) = lit_flags.iter().find(|(_, given)| *given) {
                 return fail(format!("{flag} applies to --shade lit only"));
             }
-            match dag.gpu(&args.backend, shade == Shade::Color)? {
+            let colored = shade == Shade::Color && tracer.colors().is_some();
+            match dag.gpu(&args.backend, shade == Shade::Color, colored)? {
                 None => render(&tracer, &frame, args.width, args.height, shade, args.level)
                     .map_err(|e| Failure(format!("{}: {e}", args.file.display())))?,
                 Some(gpu) => {
                     // The same f64 camera rays as the CPU path, so both back ends
                     // render the same image (up to the spec's tolerance).
                     let rays = frame.rays(args.width, args.height, args.level);
-                    let hits = gpu.trace(&rays)?;
-                    shade_hits(&hits, shade, tracer.colors())
+                    shade_on_gpu(&gpu, &rays, shade)?
                 }
             }
         }
@@ -475,7 +476,8 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
                 samples: args.samples.unwrap_or(defaults.samples),
             };
             options.check()?;
-            match dag.gpu(&args.backend, tracer.colors().is_some())? {
+            let colored = tracer.colors().is_some();
+            match dag.gpu(&args.backend, colored, colored)? {
                 None => render_lit(
                     &tracer,
                     &frame,
@@ -502,7 +504,31 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
     })
 }
 
-/// The lit image on the GPU.
+/// A `--shade normal|depth|color` image on the GPU: the hits traced there,
+/// and with colours on the device, the hit voxels' colours decoded there
+/// from their attribute indices; shaded on the host as the CPU path shades.
+#[cfg(feature = "gpu")]
+fn shade_on_gpu(
+    gpu: &GpuBackend,
+    rays: &[dagfmt::batch::Ray],
+    shade: Shade,
+) -> Result<Vec<u8>, Failure> {
+    let hits = gpu.trace(rays)?;
+    let colors = if gpu.has_colors() && shade == Shade::Color {
+        gpu.hit_colors(&hits)?
+    } else {
+        Vec::new()
+    };
+    Ok(shade_hits_colored(&hits, shade, &colors))
+}
+
+#[cfg(not(feature = "gpu"))]
+fn shade_on_gpu(gpu: &GpuBackend, _: &[dagfmt::batch::Ray], _: Shade) -> Result<Vec<u8>, Failure> {
+    match *gpu {}
+}
+
+/// The lit image on the GPU; the colours decoded there when the file has
+/// them.
 #[cfg(feature = "gpu")]
 fn lit_on_gpu(
     gpu: &GpuBackend,
@@ -511,6 +537,9 @@ fn lit_on_gpu(
     options: &LitOptions,
     tracer: &Tracer<'_>,
 ) -> Result<Vec<u8>, Failure> {
+    if gpu.has_colors() {
+        return Ok(gpu.render_lit_colored(camera, args.width, args.height, args.level, options)?);
+    }
     Ok(
         gpu.render_lit(camera, args.width, args.height, args.level, options, |i| {
             tracer.color(i)
@@ -539,7 +568,7 @@ fn trace_cmd(args: TraceArgs) -> Result<(), Failure> {
     let length = file.metadata().map_err(|e| rays_failure(&e))?.len();
     let mut reader = RayReader::new(BufReader::with_capacity(1 << 20, file), Some(length))
         .map_err(|e| rays_failure(&e))?;
-    let gpu = dag.gpu(&args.backend, true)?;
+    let gpu = dag.gpu(&args.backend, true, false)?;
     let cpu = match gpu {
         Some(_) => None,
         None => Some(dag.tracer(&args.file)?),

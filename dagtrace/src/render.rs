@@ -4,8 +4,8 @@ use rayon::prelude::*;
 
 use crate::camera::CameraFrame;
 use crate::walk::{TraceError, Tracer};
+use dagfmt::ColorTable;
 use dagfmt::batch::Hit;
-use dagfmt::{ColorCursor, ColorTable};
 
 /// How hit pixels are coloured.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -69,6 +69,29 @@ const SHADE_CHUNK: usize = 4096;
 /// block, spec §12.6); hits without an index or colours get a neutral grey.
 /// Shared by the CPU and GPU back ends so both produce the same image.
 pub fn shade_hits(hits: &[Hit], shade: Shade, colors: Option<ColorTable<'_>>) -> Vec<u8> {
+    shade_with(hits, shade, || {
+        let mut cursor = colors.map(|table| table.cursor());
+        move |_: usize, hit: &Hit| hit.index.and_then(|i| cursor.as_mut()?.get(i))
+    })
+}
+
+/// [`shade_hits`] with each hit's colour given, `colors[k]` for `hits[k]`
+/// (the GPU back end decodes them on the device: `GpuTracer::hit_colors`);
+/// `None` (or a missing entry) gets the neutral grey. The same pixels as
+/// [`shade_hits`] when the colours are the same.
+pub fn shade_hits_colored(hits: &[Hit], shade: Shade, colors: &[Option<[u8; 4]>]) -> Vec<u8> {
+    shade_with(hits, shade, || {
+        |k: usize, _: &Hit| colors.get(k).copied().flatten()
+    })
+}
+
+/// The shading of [`shade_hits`]: `lookup` makes, per task, the function
+/// giving hit `k`'s stored colour.
+fn shade_with<F, L>(hits: &[Hit], shade: Shade, lookup: L) -> Vec<u8>
+where
+    L: Fn() -> F + Sync,
+    F: FnMut(usize, &Hit) -> Option<[u8; 4]>,
+{
     let (near, far) = hits
         .iter()
         .filter(|h| h.hit && h.t.is_finite())
@@ -79,21 +102,25 @@ pub fn shade_hits(hits: &[Hit], shade: Shade, colors: Option<ColorTable<'_>>) ->
     pixels
         .par_chunks_mut(SHADE_CHUNK * 3)
         .zip(hits.par_chunks(SHADE_CHUNK))
-        .for_each(|(out, hits)| {
-            let mut cursor = colors.map(|table| table.cursor());
-            for (px, hit) in out.chunks_exact_mut(3).zip(hits) {
-                px.copy_from_slice(&shade_hit(hit, shade, (near, far), &mut cursor));
+        .enumerate()
+        .for_each(|(task, (out, hits))| {
+            let mut color = lookup();
+            for (j, (px, hit)) in out.chunks_exact_mut(3).zip(hits).enumerate() {
+                let k = task * SHADE_CHUNK + j;
+                px.copy_from_slice(&shade_hit(hit, shade, (near, far), || color(k, hit)));
             }
         });
     pixels
 }
 
-/// One pixel of [`shade_hits`]; `span` is the nearest and farthest finite hit.
+/// One pixel of [`shade_hits`]; `span` is the nearest and farthest finite
+/// hit; `color` gives the hit voxel's stored colour (asked only for
+/// [`Shade::Color`] hits).
 fn shade_hit(
     hit: &Hit,
     shade: Shade,
     (near, far): (f32, f32),
-    colors: &mut Option<ColorCursor<'_>>,
+    color: impl FnOnce() -> Option<[u8; 4]>,
 ) -> [u8; 3] {
     if !hit.hit {
         return BACKGROUND;
@@ -110,9 +137,7 @@ fn shade_hit(
         }
         Shade::Normal => lit(normal_color(hit), hit),
         Shade::Color => {
-            let base = hit
-                .index
-                .and_then(|i| colors.as_mut()?.get(i))
+            let base = color()
                 .map(|c| [c[0], c[1], c[2]].map(|v| f32::from(v) / 255.0))
                 .unwrap_or([0.75, 0.75, 0.72]);
             lit(base, hit)

@@ -19,6 +19,7 @@ use std::time::{Duration, Instant};
 use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt as _;
 
+use super::colors::{RecordShape, unpack};
 use super::layout::{
     self, FieldLayout, GpuStruct, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_MALFORMED,
     OPTION_INDEX, RENDER_TILE, ShaderConfig, WgslType, gpu_struct,
@@ -298,6 +299,66 @@ impl GpuTracer {
             let surfaces = self.band_surfaces(&band, pipelines, first)?;
             first += surfaces.len();
             image.extend(crate::lit::compose(&surfaces, options, &color));
+            Ok(())
+        })?;
+        Ok(image)
+    }
+
+    /// [`GpuTracer::render_lit`] with the voxels' colours looked up on the
+    /// device: after the three passes, the colour pass (`colors.rs`) decodes
+    /// each surface's colour from its attribute index out of the colour
+    /// section the GPU holds (compressed, for a PACKED_COLORS file), and
+    /// only the surfaces and their colours come back. An error when the
+    /// tracer holds no colours ([`super::GpuOptions::colors`]).
+    pub fn render_lit_colored(
+        &self,
+        camera: &Camera,
+        width: u32,
+        height: u32,
+        level: Option<u8>,
+        options: &LitOptions,
+    ) -> Result<Vec<u8>, GpuError> {
+        let colors = self.gpu_colors()?;
+        let shape = RecordShape {
+            stride: (size_of::<GpuSurface>() / 4) as u32,
+            info_word: (std::mem::offset_of!(GpuSurface, info) / 4) as u32,
+            index_word: (std::mem::offset_of!(GpuSurface, index_lo) / 4) as u32,
+            info_mask: INFO_HIT,
+        };
+        let mut image = Vec::with_capacity(width as usize * height as usize * 3);
+        let mut first = 0;
+        self.lit_bands(camera, width, height, level, options, |band, pipelines| {
+            let mut encoder = self.encoder();
+            self.encode_lit(&mut encoder, &band, pipelines, Pass::All);
+            let device = &self.context.inner.device;
+            let out = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("vdag lit colours"),
+                size: band.surfaces * 8,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            colors.encode(
+                &self.context,
+                &mut encoder,
+                &band.buffer,
+                band.surfaces as u32,
+                shape,
+                &out,
+            );
+            self.context.inner.queue.submit([encoder.finish()]);
+            let raw: Vec<GpuSurface> = self
+                .context
+                .read_back(&band.buffer, band.surfaces * size_of::<GpuSurface>() as u64)?;
+            let surfaces = raw
+                .iter()
+                .enumerate()
+                .map(|(i, r)| self.surface(r, first + i))
+                .collect::<Result<Vec<_>, _>>()?;
+            let decoded = unpack(&self.context.read_back::<u32>(&out, band.surfaces * 8)?);
+            first += surfaces.len();
+            image.extend(crate::lit::compose_with(&surfaces, options, |k, _| {
+                decoded[k]
+            }));
             Ok(())
         })?;
         Ok(image)

@@ -45,6 +45,7 @@
 //! validator would catch gives wrong answers, not failures.
 
 mod batch;
+mod colors;
 mod layout;
 mod lit;
 mod prepare;
@@ -166,6 +167,12 @@ pub struct GpuOptions {
     pub rays_per_dispatch: u32,
     /// Whether hits carry the dense attribute index (attribute kind 1).
     pub compute_index: bool,
+    /// Whether to upload the file's colour section (VOXEL_COLORS or
+    /// PACKED_COLORS, as stored: a packed one stays compressed on the
+    /// device), so that colours are looked up on the device
+    /// ([`GpuTracer::hit_colors`], [`GpuTracer::render_lit_colored`]).
+    /// Ignored for a file without colours or without attribute kind 1.
+    pub colors: bool,
 }
 
 impl Default for GpuOptions {
@@ -177,6 +184,7 @@ impl Default for GpuOptions {
             max_iterations: None,
             rays_per_dispatch: 1 << 18,
             compute_index: true,
+            colors: false,
         }
     }
 }
@@ -198,6 +206,8 @@ struct ContextInner {
     /// Placeholder for the bindings an entry point does not use.
     dummy: wgpu::Buffer,
     pipelines: Mutex<HashMap<ShaderConfig, Arc<Pipelines>>>,
+    /// The colour passes compiled so far (`colors.rs`).
+    color_pipelines: Mutex<HashMap<layout::ColorConfig, Arc<colors::ColorPipeline>>>,
 }
 
 #[derive(Debug)]
@@ -286,6 +296,7 @@ impl GpuContext {
                 io_layout,
                 dummy,
                 pipelines: Mutex::new(HashMap::new()),
+                color_pipelines: Mutex::new(HashMap::new()),
             }),
         })
     }
@@ -479,6 +490,8 @@ pub struct GpuTracer {
     lit: std::sync::OnceLock<Result<Arc<lit::LitPipelines>, GpuError>>,
     /// The batch path's GPU buffers, kept between calls (`batch.rs`).
     slots: Mutex<batch::Slots>,
+    /// The file's colour section on the device, when asked for (`colors.rs`).
+    colors: Option<colors::SharedColors>,
 }
 
 impl GpuTracer {
@@ -562,6 +575,12 @@ impl GpuTracer {
         let header = dag.header();
         let depth = header.depth;
         let indexed = options.compute_index && header.attribute_kind == AttributeKind::VoxelCount;
+        let gpu_colors = match dag.color_table() {
+            Some(table) if options.colors && indexed => {
+                Some(Arc::new(colors::GpuColors::new(context, table, cap)?))
+            }
+            _ => None,
+        };
         let frame = Frame {
             depth,
             root_min: header.root_min,
@@ -610,6 +629,7 @@ impl GpuTracer {
             config,
             lit: std::sync::OnceLock::new(),
             slots: Mutex::new(batch::Slots::default()),
+            colors: gpu_colors,
         })
     }
 
@@ -906,6 +926,8 @@ impl GpuTracer {
     }
 }
 
+#[cfg(test)]
+mod color_check;
 #[cfg(test)]
 mod decode_check;
 #[cfg(test)]

@@ -177,3 +177,40 @@ fn lit_shader_parses_validates_and_shares_layouts() {
         check_struct::<GpuLitParams>(&module);
     }
 }
+
+#[test]
+fn colour_shader_parses_validates_and_shares_its_layout() {
+    use super::layout::{ColorConfig, GpuColorParams};
+    for (packed, pages, page_shift) in [(true, 1, 0), (false, 1, 0), (true, 5, 12), (false, 14, 20)]
+    {
+        let config = ColorConfig {
+            packed,
+            pages,
+            page_shift,
+        };
+        let source = layout::color_shader_source(&config);
+        let module = naga::front::wgsl::parse_str(&source)
+            .unwrap_or_else(|e| panic!("{}", e.emit_to_string(&source)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{config:?}: {}", e.emit_to_string(&source)));
+        let entries: Vec<&str> = module
+            .entry_points
+            .iter()
+            .map(|e| e.name.as_str())
+            .collect();
+        assert_eq!(entries, ["record_colors"], "{config:?}");
+        check_struct::<GpuColorParams>(&module);
+        if pages > 1 {
+            let line = format!(
+                "case {}u: {{ return cpage{}[offset]; }}",
+                pages - 1,
+                pages - 1
+            );
+            assert!(source.contains(&line), "missing `{line}`");
+        }
+    }
+}

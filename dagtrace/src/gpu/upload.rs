@@ -172,13 +172,7 @@ pub(crate) fn upload(
     dag: &Dag<'_>,
     pages: &[wgpu::Buffer],
 ) -> Result<(), GpuError> {
-    let mut writer = PageWriter {
-        device,
-        queue,
-        placement,
-        pages,
-        since_flush: 0,
-    };
+    let mut writer = PageWriter::new(device, queue, placement.page_words, pages);
     for (section, slot) in dag.levels().iter().zip(&placement.levels) {
         writer.write(u64::from(slot[0]), section.bytes)?;
     }
@@ -191,23 +185,42 @@ pub(crate) fn upload(
     writer.flush()
 }
 
-struct PageWriter<'a> {
+/// Writes bytes into a word address space cut into pages of `page_words`
+/// words, one buffer each (the DAG's here, the colour section's in
+/// `colors.rs`).
+pub(crate) struct PageWriter<'a> {
     device: &'a wgpu::Device,
     queue: &'a wgpu::Queue,
-    placement: &'a Placement,
+    page_words: u64,
     pages: &'a [wgpu::Buffer],
     since_flush: usize,
 }
 
-impl PageWriter<'_> {
+impl<'a> PageWriter<'a> {
+    /// A writer into `pages`, each of `page_words` words (the last perhaps fewer).
+    pub(crate) fn new(
+        device: &'a wgpu::Device,
+        queue: &'a wgpu::Queue,
+        page_words: u64,
+        pages: &'a [wgpu::Buffer],
+    ) -> Self {
+        PageWriter {
+            device,
+            queue,
+            page_words,
+            pages,
+            since_flush: 0,
+        }
+    }
+
     /// Writes `bytes` at word address `word`, split at page boundaries and in
     /// bounded chunks. A length that is not a multiple of 4 (only in a
     /// malformed file) is padded with zeros.
-    fn write(&mut self, mut word: u64, mut bytes: &[u8]) -> Result<(), GpuError> {
+    pub(crate) fn write(&mut self, mut word: u64, mut bytes: &[u8]) -> Result<(), GpuError> {
         while !bytes.is_empty() {
-            let page = word / self.placement.page_words;
-            let in_page = word % self.placement.page_words;
-            let room = ((self.placement.page_words - in_page) * 4) as usize;
+            let page = word / self.page_words;
+            let in_page = word % self.page_words;
+            let room = ((self.page_words - in_page) * 4) as usize;
             let n = bytes.len().min(room).min(CHUNK_BYTES);
             let (chunk, rest) = bytes.split_at(n);
             let buffer = &self.pages[page as usize];
@@ -229,7 +242,7 @@ impl PageWriter<'_> {
     }
 
     /// Submits the pending writes and waits, so that wgpu frees their staging memory.
-    fn flush(&mut self) -> Result<(), GpuError> {
+    pub(crate) fn flush(&mut self) -> Result<(), GpuError> {
         self.queue.submit([]);
         self.device
             .poll(wgpu::PollType::wait_indefinitely())

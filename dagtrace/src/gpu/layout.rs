@@ -69,6 +69,10 @@ pub const TINY_DIRECTION_INVERSE: f32 = (1u64 << 60) as f32;
 /// Far end of camera rays, in grid units along a unit direction.
 pub const RENDER_FAR: f32 = 1.0e30;
 
+/// `GpuParams::levels[l].w` bit: the level is a format 2.0 section (spec
+/// §23): records at byte offsets, references in the widths of `.y`.
+pub const LEVEL_V2: u32 = 1;
+
 /// Marks "not replaying a path" in the short-stack traversal.
 pub const NO_REPLAY: u32 = u32::MAX;
 
@@ -256,8 +260,11 @@ gpu_struct! {
         pub cam_right: [f32; 4],
         /// Up vector scaled by tan(fov/2).
         pub cam_up: [f32; 4],
-        /// Per level: word address of the section, pointer width, units
-        /// (words, or leaves for the leaf level), 0.
+        /// Per level: word address of the section; the reference widths
+        /// (1.0: pointer bytes; 2.0: the bit widths `w1 | w2 << 8 | w3 << 16`,
+        /// spec §23.2, 0 for the leaf level); units (1.0: words; 2.0: bytes;
+        /// leaves for the leaf level), the bound a child address must be
+        /// below; flags ([`LEVEL_V2`]).
         pub levels: [[u32; 4]; MAX_STORED_LEVELS],
     }
 }
@@ -278,6 +285,10 @@ pub(crate) struct ShaderConfig {
     pub pages: u32,
     /// log2 of the words per page (when there is more than one page).
     pub page_shift: u32,
+    /// Whether the DAG is format 2.0 (spec §23): the shader is compiled with
+    /// `FORMAT_V2 = true`, its 2.0 decoder and the accumulated reflections;
+    /// a 1.0 shader has them compiled out (constant-false branches).
+    pub format_v2: bool,
 }
 
 fn constant_u32(s: &mut String, name: &str, value: u32) {
@@ -317,6 +328,7 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
     constant_u32(&mut s, "CHILD_MASK_BITS", CHILD_MASK_BITS);
     constant_u32(&mut s, "COUNT_SATURATED", COUNT_SATURATED);
     constant_u32(&mut s, "NO_REPLAY", NO_REPLAY);
+    constant_u32(&mut s, "LEVEL_V2", LEVEL_V2);
     constant_f32(&mut s, "TINY_DIRECTION_INVERSE", TINY_DIRECTION_INVERSE);
     constant_f32(&mut s, "RENDER_FAR", RENDER_FAR);
     constant_u32(&mut s, "STACK_SIZE", config.stack_size);
@@ -331,6 +343,7 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
         },
     );
     let _ = writeln!(s, "const SHORT_STACK: bool = {};", config.short_stack);
+    let _ = writeln!(s, "const FORMAT_V2: bool = {};", config.format_v2);
     constant_u32(&mut s, "PAGE_COUNT", config.pages);
     s.push('\n');
     for decl in [

@@ -167,6 +167,10 @@ struct Codes2 {
     header: u32,
     codes: u32,
     count: u32,
+    // The traversal's cursor: the last sequential child found (position j,
+    // address), NO_CURSOR when none; see `child2_from`.
+    cursor_j: u32,
+    cursor_at: u32,
 }
 
 // The 32 bits at bit `s` (0..32) of the 64-bit little-endian (w0, w1).
@@ -199,6 +203,8 @@ fn codes2(level: u32, off: u32) -> Codes2 {
     }
     c.codes = codes;
     c.count = count;
+    c.cursor_j = NO_CURSOR;
+    c.cursor_at = 0u;
     return c;
 }
 
@@ -251,6 +257,9 @@ fn value2(level: u32, off: u32, bit: u32, width: u32) -> vec2<u32> {
     return vec2<u32>(lo, hi);
 }
 
+// No sequential child found yet (`Codes2::cursor_j`).
+const NO_CURSOR: u32 = 0xffffffffu;
+
 // The child at physical slot `slot` (set in the child mask) of the record at
 // byte `off` of 2.0 level `level`, whose header and codes are `c`: (address
 // in level + 1, reflection). A shared child's reference is at bit 2m +
@@ -258,6 +267,15 @@ fn value2(level: u32, off: u32, bit: u32, width: u32) -> vec2<u32> {
 // the leaf level, else `base` plus the sizes of the j sequential siblings
 // before it. An address beyond 32 bits reads as 0xffffffff (out of range).
 fn child2(level: u32, off: u32, c: Codes2, slot: u32) -> vec2<u32> {
+    return child2_from(level, off, c, slot).xy;
+}
+
+// `child2`, starting the sum of sequential siblings' sizes from the cursor
+// `c.cursor_j`/`c.cursor_at` (the j-th sequential child's address, found
+// before) where it is at or before the child asked for. `.z`: the child's
+// sequential position j in an interior child level (a new cursor), else
+// NO_CURSOR.
+fn child2_from(level: u32, off: u32, c: Codes2, slot: u32) -> vec3<u32> {
     let widths = params.levels[level].y;
     let mask = c.header & 0xffu;
     let rank = countOneBits(mask & ((1u << slot) - 1u));
@@ -267,27 +285,34 @@ fn child2(level: u32, off: u32, c: Codes2, slot: u32) -> vec2<u32> {
     if (code != 0u) {
         let v = value2(level, off, stream + reference_bits2(widths, before), code_width(widths, code));
         let dest = select(0xffffffffu, (v.x >> 3u) | (v.y << 29u), v.y < 8u);
-        return vec2<u32>(dest, v.x & 7u);
+        return vec3<u32>(dest, v.x & 7u, NO_CURSOR);
     }
-    let k = countOneBits(mask);
-    let child_codes = c.codes & ((1u << (2u * k)) - 1u);
-    let base_code = (c.codes >> (2u * k)) & 3u;
-    let b = value2(level, off, stream + reference_bits2(widths, child_codes), code_width(widths, base_code));
-    var dest = select(0xffffffffu, b.x, b.y == 0u);
     let j = rank - countOneBits((before | (before >> 1u)) & LOW_CODE_BITS);
     let child_level = level + 1u;
-    if (child_level == params.leaf_level) {
-        dest = select(0xffffffffu, dest + j, dest <= 0xffffffffu - j);
+    var i = 0u;
+    var dest = 0u;
+    let interior = child_level != params.leaf_level;
+    if (interior && c.cursor_j <= j) {
+        i = c.cursor_j;
+        dest = c.cursor_at;
     } else {
-        let units = params.levels[child_level].z;
-        for (var i = 0u; i < j; i += 1u) {
-            if (dest >= units) {
-                break;
-            }
-            dest += record_size2(child_level, dest);
-        }
+        let k = countOneBits(mask);
+        let child_codes = c.codes & ((1u << (2u * k)) - 1u);
+        let base_code = (c.codes >> (2u * k)) & 3u;
+        let b = value2(level, off, stream + reference_bits2(widths, child_codes), code_width(widths, base_code));
+        dest = select(0xffffffffu, b.x, b.y == 0u);
     }
-    return vec2<u32>(dest, 0u);
+    if (!interior) {
+        return vec3<u32>(select(0xffffffffu, dest + j, dest <= 0xffffffffu - j), 0u, NO_CURSOR);
+    }
+    let units = params.levels[child_level].z;
+    for (; i < j; i += 1u) {
+        if (dest >= units) {
+            break;
+        }
+        dest += record_size2(child_level, dest);
+    }
+    return vec3<u32>(dest, 0u, j);
 }
 
 // The leaf mask `bits` (low, high word) of a leaf reached with accumulated
@@ -512,9 +537,14 @@ fn traverse(p: Prepared) -> Found {
         var pointer = 0u;
         var child_refl = 0u;
         if (FORMAT_V2) {
-            let ch = child2(level, node, codes_stack[level & STACK_MASK], j ^ p.neg ^ refl);
+            let ch = child2_from(level, node, codes_stack[level & STACK_MASK], j ^ p.neg ^ refl);
             pointer = ch.x;
             child_refl = refl ^ ch.y;
+            if (ch.z != NO_CURSOR) {
+                // Later sequential siblings are found from this one.
+                codes_stack[level & STACK_MASK].cursor_j = ch.z;
+                codes_stack[level & STACK_MASK].cursor_at = ch.x;
+            }
         } else {
             pointer = child_reference(node, level, mask, j ^ p.neg);
         }

@@ -69,10 +69,6 @@ pub const TINY_DIRECTION_INVERSE: f32 = (1u64 << 60) as f32;
 /// Far end of camera rays, in grid units along a unit direction.
 pub const RENDER_FAR: f32 = 1.0e30;
 
-/// `GpuParams::levels[l].w` bit: the level is a format 2.0 section (spec
-/// §23): records at byte offsets, references in the widths of `.y`.
-pub const LEVEL_V2: u32 = 1;
-
 /// Marks "not replaying a path" in the short-stack traversal.
 pub const NO_REPLAY: u32 = u32::MAX;
 
@@ -264,7 +260,8 @@ gpu_struct! {
         /// (1.0: pointer bytes; 2.0: the bit widths `w1 | w2 << 8 | w3 << 16`,
         /// spec §23.2, 0 for the leaf level); units (1.0: words; 2.0: bytes;
         /// leaves for the leaf level), the bound a child address must be
-        /// below; flags ([`LEVEL_V2`]).
+        /// below; 2.0: the word address of the level's record-start bit
+        /// vector (`upload::record_starts`), 0 when it has none.
         pub levels: [[u32; 4]; MAX_STORED_LEVELS],
     }
 }
@@ -328,7 +325,6 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
     constant_u32(&mut s, "CHILD_MASK_BITS", CHILD_MASK_BITS);
     constant_u32(&mut s, "COUNT_SATURATED", COUNT_SATURATED);
     constant_u32(&mut s, "NO_REPLAY", NO_REPLAY);
-    constant_u32(&mut s, "LEVEL_V2", LEVEL_V2);
     constant_f32(&mut s, "TINY_DIRECTION_INVERSE", TINY_DIRECTION_INVERSE);
     constant_f32(&mut s, "RENDER_FAR", RENDER_FAR);
     constant_u32(&mut s, "STACK_SIZE", config.stack_size);

@@ -551,11 +551,12 @@ impl GpuTracer {
             }
         }
         let saturated = upload::saturated_counts_v2(levels, header.attribute_kind)?;
+        let starts = upload::record_starts(levels);
         Self::build(
             context,
             header,
             levels[0].item_count == 0,
-            &UploadLevel::v2(levels),
+            &UploadLevel::v2(levels, &starts),
             saturated,
             true,
             options,

@@ -305,14 +305,43 @@ fn child2_from(level: u32, off: u32, c: Codes2, slot: u32) -> vec3<u32> {
     if (!interior) {
         return vec3<u32>(select(0xffffffffu, dest + j, dest <= 0xffffffffu - j), 0u, NO_CURSOR);
     }
-    let units = params.levels[child_level].z;
-    for (; i < j; i += 1u) {
-        if (dest >= units) {
-            break;
-        }
-        dest += record_size2(child_level, dest);
+    return vec3<u32>(next_records(child_level, dest, j - i), 0u, j);
+}
+
+// The byte offset of the record `n` records after the one at byte `at` of
+// 2.0 level `level`: the n-th set bit after bit `at` of the level's
+// record-start bit vector (uploaded with it, `upload::record_starts`),
+// usually one load; 0xffffffff past the level. (`at + size(at) + ...`, the
+// sizes read from each record's header and codes, `record_size2`, gives
+// the same in a valid level.)
+fn next_records(level: u32, at: u32, count: u32) -> u32 {
+    if (count == 0u) {
+        return at;
     }
-    return vec3<u32>(dest, 0u, j);
+    let starts = params.levels[level].w;
+    let words = (params.levels[level].z + 31u) / 32u;
+    var n = count;
+    var w = at >> 5u;
+    if (w >= words) {
+        return 0xffffffffu;
+    }
+    var m = load_word(starts + w) & ~((2u << (at & 31u)) - 1u);
+    loop {
+        let c = countOneBits(m);
+        if (c >= n) {
+            for (var t = 1u; t < n; t += 1u) {
+                m &= m - 1u;
+            }
+            return w * 32u + countTrailingZeros(m);
+        }
+        n -= c;
+        w += 1u;
+        if (w >= words) {
+            return 0xffffffffu;
+        }
+        m = load_word(starts + w);
+    }
+    return 0xffffffffu;
 }
 
 // The leaf mask `bits` (low, high word) of a leaf reached with accumulated

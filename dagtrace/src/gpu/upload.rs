@@ -15,7 +15,7 @@
 //! GPU in bounded chunks: nothing proportional to the file is copied in RAM.
 
 use super::GpuError;
-use super::layout::{LEVEL_V2, MAX_STORED_LEVELS};
+use super::layout::MAX_STORED_LEVELS;
 use dagfmt::layout::{AttributeKind, COUNT_SATURATED};
 use dagfmt::v2::LevelView;
 use dagfmt::{Dag, FormatError};
@@ -31,8 +31,9 @@ pub(crate) struct UploadLevel<'a> {
     pub widths: u32,
     /// Bound of a child address into this level: 1.0 words, 2.0 bytes, leaves.
     pub units: u64,
-    /// [`LEVEL_V2`] or 0.
-    pub flags: u32,
+    /// 2.0 levels named by sequential runs: the record-start bit vector
+    /// ([`record_starts`]), placed after the level's bytes.
+    pub starts: Option<&'a [u32]>,
 }
 
 impl<'a> UploadLevel<'a> {
@@ -48,16 +49,18 @@ impl<'a> UploadLevel<'a> {
                 } else {
                     section.bytes.len() as u64 / 4
                 },
-                flags: 0,
+                starts: None,
             })
             .collect()
     }
 
-    /// The levels of a 2.0 DAG (spec §23.2: records at byte offsets).
-    pub fn v2(levels: &[LevelView<'a>]) -> Vec<Self> {
+    /// The levels of a 2.0 DAG (spec §23.2: records at byte offsets), with
+    /// the record-start bit vectors `starts` (one per level, empty for none).
+    pub fn v2(levels: &[LevelView<'a>], starts: &'a [Vec<u32>]) -> Vec<Self> {
         levels
             .iter()
-            .map(|view| UploadLevel {
+            .zip(starts)
+            .map(|(view, starts)| UploadLevel {
                 bytes: view.bytes,
                 widths: if view.is_leaf {
                     0
@@ -71,10 +74,45 @@ impl<'a> UploadLevel<'a> {
                 } else {
                     view.bytes.len() as u64
                 },
-                flags: LEVEL_V2,
+                starts: (!starts.is_empty()).then_some(starts.as_slice()),
             })
             .collect()
     }
+}
+
+/// The record-start bit vectors of the 2.0 node levels 1 ..= D − 3 (the
+/// interior levels whose records parents name by sequential runs, spec
+/// §23.3): bit b set when a record starts at byte b. With it the shader finds
+/// the j-th sequential child of a run as the j-th set bit after the run's
+/// base (one or two loads), instead of reading the headers and codes of the
+/// j records before it; it is an index built at upload, like the table of
+/// saturated counts, an eighth of the level's size. Empty for the other
+/// levels, and where a record does not decode (a malformed level: the bits
+/// found so far are kept).
+pub(crate) fn record_starts(levels: &[LevelView<'_>]) -> Vec<Vec<u32>> {
+    levels
+        .iter()
+        .enumerate()
+        .map(|(l, view)| {
+            if l == 0 || view.is_leaf || view.bytes.is_empty() {
+                return Vec::new();
+            }
+            let Ok(coding) = dagfmt::v2::Coding::new(view.widths) else {
+                return Vec::new();
+            };
+            let len = view.bytes.len() as u64;
+            let mut bits = vec![0u32; len.div_ceil(32) as usize];
+            let mut at = 0u64;
+            while at < len {
+                bits[(at / 32) as usize] |= 1 << (at % 32);
+                match coding.record_size(view.bytes, at) {
+                    Some(size) => at += size,
+                    None => break,
+                }
+            }
+            bits
+        })
+        .collect()
 }
 
 /// Bytes handed to one `Queue::write_buffer` call.
@@ -111,13 +149,17 @@ impl Placement {
         let mut next = 0u64;
         for (slot, section) in levels.iter_mut().zip(dag_levels) {
             let words = (section.bytes.len() as u64).div_ceil(4);
+            let starts_at = next + words;
             *slot = [
                 u32::try_from(next).map_err(|_| too_large(next))?,
                 section.widths,
                 u32::try_from(section.units).unwrap_or(u32::MAX),
-                section.flags,
+                match section.starts {
+                    Some(_) => u32::try_from(starts_at).map_err(|_| too_large(starts_at))?,
+                    None => 0,
+                },
             ];
-            next += words;
+            next = starts_at + section.starts.map_or(0, |s| s.len() as u64);
         }
         let sat_base = next;
         let mut table: Vec<[u32; 3]> = saturated
@@ -303,6 +345,10 @@ pub(crate) fn upload(
     };
     for (section, slot) in levels.iter().zip(&placement.levels) {
         writer.write(u64::from(slot[0]), section.bytes)?;
+        if let Some(starts) = section.starts {
+            let bytes: Vec<u8> = starts.iter().flat_map(|w| w.to_le_bytes()).collect();
+            writer.write(u64::from(slot[3]), &bytes)?;
+        }
     }
     let table: Vec<u8> = placement
         .saturated

@@ -5,7 +5,9 @@
 //! boundary, then the table of saturated voxel counts. A format 2.0 level
 //! (spec §23) is uploaded as its bytes, like a 1.0 level: its records are
 //! unaligned, and the shader reads them with aligned word loads at byte
-//! offsets ([`UploadLevel`] says how each level is addressed). The space is cut into pages of a power-of-two
+//! offsets ([`UploadLevel`] says how each level is addressed); after each
+//! 2.0 level named by sequential runs comes its record-start bit vector
+//! ([`record_starts`]). The space is cut into pages of a power-of-two
 //! number of words, one storage binding each, so that a DAG larger than the
 //! largest storage binding still fits (`load_word` in the generated preamble
 //! picks the page). Records may straddle pages: every word is looked up on its

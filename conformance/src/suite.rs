@@ -252,17 +252,20 @@ impl GpuTracer {
 
 impl TraceBackend for GpuTracer {
     fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
-        let dag = match dagfmt::AnyDag::open(file) {
-            Ok(dagfmt::AnyDag::V1(dag)) => dag,
-            Ok(dagfmt::AnyDag::V2(_)) => {
-                return Err(
-                    "the GPU tracer reads format 1.0 files only (VDAG.md § 23 status)".into(),
-                );
+        let dag = dagfmt::AnyDag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
+        let tracer = match &dag {
+            dagfmt::AnyDag::V1(d) => {
+                dagtrace::gpu::GpuTracer::with_context(&self.context, d, &self.options)
             }
-            Err(e) => return Err(format!("the file does not open: {e}")),
-        };
-        let tracer = dagtrace::gpu::GpuTracer::with_context(&self.context, &dag, &self.options)
-            .map_err(|e| format!("the GPU tracer refuses the file: {e}"))?;
+            dagfmt::AnyDag::V2(d) => dagtrace::gpu::GpuTracer::with_context_v2(
+                &self.context,
+                d.header(),
+                d.levels(),
+                d.color_table(),
+                &self.options,
+            ),
+        }
+        .map_err(|e| format!("the GPU tracer refuses the file: {e}"))?;
         tracer
             .trace(rays)
             .map_err(|e| format!("GPU tracing failed: {e}"))

@@ -88,9 +88,8 @@ fn cpu_tracer_passes_every_case() {
     }
 }
 
-/// The 2.0 run really hands the tracer a 2.0 file: the GPU tracer (1.0 only)
-/// refuses every case in 2.0 with one clear line, and the CPU tracer's answers
-/// on the upgraded file are those on the committed one, hit for hit.
+/// The 2.0 run really hands the tracer a 2.0 file, and the CPU tracer's
+/// answers on the upgraded file are those on the committed one, hit for hit.
 #[test]
 fn the_2_0_run_traces_upgraded_files() {
     let cases = suite::trace_cases(committed_cases(), Some("random-sparse")).expect("case");
@@ -110,14 +109,9 @@ fn the_2_0_run_traces_upgraded_files() {
         v2.iter().map(key).collect::<Vec<_>>()
     );
     assert!(v1.iter().filter(|h| h.hit).count() > 10);
-    if let Ok(gpu) = suite::GpuTracer::new(None) {
-        let outcome = suite::run_trace_case_in(case, &gpu, FormatVersion::V2);
-        assert_eq!(outcome.name, format!("{}@2.0", case.name));
-        assert_eq!(
-            outcome.failures,
-            ["the GPU tracer reads format 1.0 files only (VDAG.md § 23 status)"]
-        );
-    }
+    let outcome = suite::run_trace_case_in(case, &CpuTracer, FormatVersion::V2);
+    assert_eq!(outcome.name, format!("{}@2.0", case.name));
+    assert!(outcome.passed(), "{:?}", outcome.failures);
 }
 
 /// The GPU tracer (full stack and short stack) must pass every case too. Without
@@ -138,12 +132,12 @@ fn gpu_tracer_passes_every_case() {
                 return;
             }
         };
-        // Format 1.0 only: the GPU tracer does not read 2.0 yet (VDAG.md § 23
-        // status; `the_2_0_run_traces_upgraded_files` checks it says so).
+        // Every case in format 1.0 and 2.0.
         let cases = suite::trace_cases(committed_cases(), None).expect("cases load");
-        let outcomes: Vec<_> = cases
+        let outcomes: Vec<_> = FormatVersion::ALL
             .iter()
-            .map(|c| suite::run_trace_case(c, &gpu))
+            .flat_map(|&v| cases.iter().map(move |c| (c, v)))
+            .map(|(c, v)| suite::run_trace_case_in(c, &gpu, v))
             .collect();
         assert!(
             outcomes.iter().all(Outcome::passed),

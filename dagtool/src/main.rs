@@ -380,7 +380,7 @@ struct ConvertArgs {
     attributes: AttributesArg,
     /// The format version to write: 1 (default: every tracer reads it) or 2
     /// (spec §23: symmetry-aware records, about half the size; `dagtrace`
-    /// traces it on the CPU, the GPU tracer does not read it yet —
+    /// traces it on the CPU and the GPU, but for the GPU's lit render —
     /// `dagtool upgrade --format-version 1` turns it back into 1.0).
     #[arg(long, value_name = "1|2", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=2))]
     format_version: u16,

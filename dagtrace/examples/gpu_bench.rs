@@ -16,6 +16,17 @@
 //! on the CPU tracer (all cores). `--chunk N` sets the rays per chunk of the
 //! batch path (with the whole batch in one chunk nothing overlaps, and the
 //! host part is the host's work alone, the GPU idle meanwhile).
+//!
+//! ```text
+//! gpu_bench FILE.vdag --compare-v2 FILE2.vdag [--runs N] [--random N] [--size WxH]
+//! ```
+//!
+//! compares the GPU trace rates of a format 1.0 file and the 2.0 file of the
+//! same voxels (`dagtool convert --format-version 2`, or `dagtool upgrade`):
+//! the same random rays (batch path, no attribute index) and primary rays,
+//! full and short (4) stacks, run by run interleaved (1.0, then 2.0, per
+//! run); prints the medians and the median of the per-run ratios 2.0 / 1.0
+//! of the rates, and checks that both give the same answers.
 
 #[cfg(feature = "gpu")]
 fn main() {
@@ -51,6 +62,8 @@ mod bench {
         height: u32,
         /// Rays per chunk of the batch path (`GpuOptions::rays_per_dispatch`).
         chunk: u32,
+        /// `--compare-v2`: the 2.0 file of the same voxels.
+        compare_v2: Option<String>,
     }
 
     fn parse_args() -> Result<Args, String> {
@@ -62,6 +75,7 @@ mod bench {
             width: 1920,
             height: 1080,
             chunk: GpuOptions::default().rays_per_dispatch,
+            compare_v2: None,
         };
         let mut it = std::env::args().skip(1);
         let number = |v: Option<String>, what: &str| -> Result<usize, String> {
@@ -75,6 +89,9 @@ mod bench {
                 "--cpu-runs" => args.cpu_runs = number(it.next(), "--cpu-runs")?,
                 "--random" => args.random = number(it.next(), "--random")?,
                 "--chunk" => args.chunk = number(it.next(), "--chunk")?.clamp(1, 1 << 22) as u32,
+                "--compare-v2" => {
+                    args.compare_v2 = Some(it.next().ok_or("--compare-v2 needs a 2.0 file")?)
+                }
                 "--size" => {
                     let v = it.next().ok_or("--size needs WxH")?;
                     let (w, h) = v.split_once('x').ok_or("--size needs WxH")?;
@@ -156,8 +173,119 @@ mod bench {
             .collect()
     }
 
+    /// `--compare-v2`: the GPU trace rates of the 1.0 file and the 2.0 file
+    /// of the same voxels, interleaved run by run.
+    fn compare_v2(args: &Args, path2: &str) -> Result<(), String> {
+        let file1 =
+            MappedFile::open(args.path.as_ref()).map_err(|e| format!("{}: {e}", args.path))?;
+        let dag1 = Dag::open(file1.bytes()).map_err(|e| format!("{}: {e}", args.path))?;
+        let file2 = MappedFile::open(path2.as_ref()).map_err(|e| format!("{path2}: {e}"))?;
+        let dag2 = dagfmt::Dag2::open(file2.bytes()).map_err(|e| format!("{path2}: {e}"))?;
+        let context = GpuContext::new(AdapterChoice::Default).map_err(|e| e.to_string())?;
+        println!(
+            "1.0: {} ({} bytes), 2.0: {path2} ({} bytes), depth {}",
+            args.path,
+            dag1.bytes().len(),
+            dag2.bytes().len(),
+            dag1.depth()
+        );
+        println!("adapter: {}", context.adapter_name());
+        let rays = random_rays(&dag1, args.random);
+        let (w, h) = (args.width, args.height);
+        let pixels = (w * h) as usize;
+        let header = dag1.header();
+        let camera = Camera::looking_at_cube(
+            header.root_min,
+            header.root_size,
+            f64::from(w) / f64::from(h),
+        );
+        for (stack_name, stack) in [
+            ("full stack", StackMode::Full),
+            ("short stack (4)", StackMode::Short(4)),
+        ] {
+            let options = GpuOptions {
+                stack,
+                compute_index: false,
+                rays_per_dispatch: args.chunk,
+                ..GpuOptions::default()
+            };
+            let one =
+                GpuTracer::with_context(&context, &dag1, &options).map_err(|e| e.to_string())?;
+            let two =
+                GpuTracer::with_context_v2(&context, dag2.header(), dag2.levels(), None, &options)
+                    .map_err(|e| e.to_string())?;
+            // Warm-up (buffers, pipelines) and the answers, which must agree.
+            let mut hits1 = vec![dagfmt::batch::Hit::MISS; rays.len()];
+            let mut hits2 = hits1.clone();
+            one.trace_into_with_stats(&rays, &mut hits1)
+                .map_err(|e| e.to_string())?;
+            two.trace_into_with_stats(&rays, &mut hits2)
+                .map_err(|e| e.to_string())?;
+            if hits1 != hits2 {
+                let n = hits1.iter().zip(&hits2).filter(|(a, b)| a != b).count();
+                return Err(format!(
+                    "{stack_name}: 2.0 answers differ from 1.0 on {n} rays"
+                ));
+            }
+            one.time_render(&camera, w, h, 1)
+                .map_err(|e| e.to_string())?;
+            two.time_render(&camera, w, h, 1)
+                .map_err(|e| e.to_string())?;
+            let (mut r1, mut r2, mut rr) = (Vec::new(), Vec::new(), Vec::new());
+            let (mut c1, mut c2, mut cr) = (Vec::new(), Vec::new(), Vec::new());
+            for _ in 0..args.runs {
+                let a = one
+                    .trace_into_with_stats(&rays, &mut hits1)
+                    .map_err(|e| e.to_string())?
+                    .gpu_time;
+                let b = two
+                    .trace_into_with_stats(&rays, &mut hits2)
+                    .map_err(|e| e.to_string())?
+                    .gpu_time;
+                rr.push(a.as_secs_f64() / b.as_secs_f64());
+                r1.push(a);
+                r2.push(b);
+                let a = one
+                    .time_render(&camera, w, h, 1)
+                    .map_err(|e| e.to_string())?[0];
+                let b = two
+                    .time_render(&camera, w, h, 1)
+                    .map_err(|e| e.to_string())?[0];
+                cr.push(a.as_secs_f64() / b.as_secs_f64());
+                c1.push(a);
+                c2.push(b);
+            }
+            let median_f = |mut v: Vec<f64>| {
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            };
+            println!("{stack_name}, median of {} interleaved runs:", args.runs);
+            println!(
+                "  random rays ({}): 1.0 {}, 2.0 {}; 2.0/1.0 rate {:.3} (per-run ratios {:.3} to {:.3})",
+                rays.len(),
+                rate(rays.len(), median(r1)),
+                rate(rays.len(), median(r2)),
+                median_f(rr.clone()),
+                rr.iter().copied().fold(f64::INFINITY, f64::min),
+                rr.iter().copied().fold(0.0, f64::max),
+            );
+            println!(
+                "  camera rays ({w}x{h}): 1.0 {}, 2.0 {}; 2.0/1.0 rate {:.3} (per-run ratios {:.3} to {:.3})",
+                rate(pixels, median(c1)),
+                rate(pixels, median(c2)),
+                median_f(cr.clone()),
+                cr.iter().copied().fold(f64::INFINITY, f64::min),
+                cr.iter().copied().fold(0.0, f64::max),
+            );
+        }
+        Ok(())
+    }
+
     pub fn run() -> Result<(), String> {
         let args = parse_args()?;
+        if let Some(path2) = &args.compare_v2 {
+            return compare_v2(&args, path2);
+        }
         let started = Instant::now();
         let file =
             MappedFile::open(args.path.as_ref()).map_err(|e| format!("{}: {e}", args.path))?;

@@ -294,7 +294,7 @@ enum GpuBackend {}
 /// section the device cannot hold is refused in one line (`--backend gpu`)
 /// or sends `auto` to the CPU.
 fn pick_gpu(
-    dag: &Dag<'_>,
+    dag: &Opened<'_>,
     backend: &BackendArgs,
     compute_index: bool,
     colors: bool,
@@ -316,7 +316,11 @@ fn pick_gpu(
             colors,
             ..GpuOptions::default()
         };
-        match GpuTracer::new(dag, &options) {
+        let made = match dag {
+            Opened::V1(d) => GpuTracer::new(d, &options),
+            Opened::V2(d) => GpuTracer::new_v2(d.header(), d.levels(), d.color_table(), &options),
+        };
+        match made {
             Ok(gpu) => {
                 eprintln!(
                     "dagtrace: tracing on the GPU: {}",
@@ -342,8 +346,8 @@ fn pick_gpu(
 }
 
 /// The file's DAG, either format version (spec §4.2): a 1.x file as a
-/// [`Dag`] for every back end, a 2.0 file's levels for the CPU tracer (the
-/// GPU tracer reads 1.x only).
+/// [`Dag`], a 2.0 file's levels (spec §23), for every back end (the GPU's
+/// lit render reads 1.x only).
 enum Opened<'a> {
     V1(Dag<'a>),
     V2(dagfmt::Dag2<'a>),
@@ -373,34 +377,40 @@ impl<'a> Opened<'a> {
         .map_err(|e| Failure(format!("{}: {e}", path.display())))
     }
 
-    /// The GPU tracer, if the back end asks for one: a 2.0 file is traced on
-    /// the CPU (with `--backend auto`) or refused (`--backend gpu`).
+    /// The GPU tracer, if the back end asks for one (either format version).
     fn gpu(
         &self,
         backend: &BackendArgs,
         compute_index: bool,
         colors: bool,
     ) -> Result<Option<GpuBackend>, Failure> {
-        match self {
-            Opened::V1(d) => pick_gpu(d, backend, compute_index, colors),
-            Opened::V2(_) => match backend.backend {
-                BackendArg::Gpu => fail(
-                    "--backend gpu: the GPU tracer reads format 1 files only; use --backend cpu, or `dagtool upgrade FILE -o OUT --format-version 1`",
-                ),
-                _ => pick_gpu_for_v2(backend),
-            },
+        pick_gpu(self, backend, compute_index, colors)
+    }
+
+    /// The GPU tracer for a lit render: as [`Opened::gpu`], but the GPU's lit
+    /// passes read 1.x files only, so a 2.0 file is lit on the CPU (with
+    /// `--backend auto`) or refused (`--backend gpu`).
+    fn gpu_lit(
+        &self,
+        backend: &BackendArgs,
+        compute_index: bool,
+        colors: bool,
+    ) -> Result<Option<GpuBackend>, Failure> {
+        match (self, backend.backend) {
+            (Opened::V1(_), _) | (Opened::V2(_), BackendArg::Cpu) => {
+                pick_gpu(self, backend, compute_index, colors)
+            }
+            (Opened::V2(_), BackendArg::Gpu) => fail(
+                "--backend gpu: the GPU's lit render reads format 1 files only; use --shade normal (traced on the GPU), --backend cpu, or `dagtool upgrade FILE -o OUT --format-version 1`",
+            ),
+            (Opened::V2(_), BackendArg::Auto) => {
+                eprintln!(
+                    "dagtrace: format 2.0 file: lit on the CPU (the GPU's lit render reads format 1)"
+                );
+                Ok(None)
+            }
         }
     }
-}
-
-/// `pick_gpu` for a 2.0 file with `--backend cpu` or `auto`: the CPU tracer.
-fn pick_gpu_for_v2(backend: &BackendArgs) -> Result<Option<GpuBackend>, Failure> {
-    if backend.backend == BackendArg::Auto {
-        eprintln!("dagtrace: format 2.0 file: tracing on the CPU (the GPU tracer reads format 1)");
-    } else if backend.short_stack.is_some() {
-        return fail("--short-stack applies to the GPU tracer only (use --backend gpu)");
-    }
-    Ok(None)
 }
 
 fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
@@ -477,7 +487,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
             };
             options.check()?;
             let colored = tracer.colors().is_some();
-            match dag.gpu(&args.backend, colored, colored)? {
+            match dag.gpu_lit(&args.backend, colored, colored)? {
                 None => render_lit(
                     &tracer,
                     &frame,

@@ -6,20 +6,28 @@
 //! over several storage bindings, so that `load_word`'s page choice is
 //! checked too.
 //!
+//! The 2.0 decoder of `trace.wgsl` (`codes2`, `child2`, `record_size2`,
+//! `reflect_leaf`; spec §23.2 – §23.4) is checked the same way against
+//! `node::Level::new_v2` (which reads through `dagfmt::v2::Coding`) and
+//! `node::logical_leaf`, over the records of random 2.0 DAGs and of the
+//! conformance cases upgraded with `dagfmt::v2file::upgrade`.
+//!
 //! Without an adapter the test prints that it was skipped (a failure with
 //! `VDAG_REQUIRE_GPU=1`), like the GPU tests in `dagtrace/tests/it/gpu.rs`.
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 
-use dagfmt::Dag;
 use dagfmt::builder::DagBuilder;
 use dagfmt::layout::AttributeKind;
+use dagfmt::v2::{Child, Coding, LevelView};
+use dagfmt::v2file::upgrade;
+use dagfmt::{Dag, Dag2};
 use wgpu::util::DeviceExt;
 
 use super::layout::{GpuHit, GpuRay, ShaderConfig};
 use super::{AdapterChoice, GpuContext, GpuOptions, GpuTracer};
-use crate::node::{Level, attribute, child_mask};
+use crate::node::{Level, attribute, child_mask, logical_leaf};
 use crate::testing::Rng;
 
 /// The test entry point: query `i` (four words of `image`: kind, level,
@@ -54,6 +62,42 @@ fn check_decoding(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 "#;
 
+/// The 2.0 test entry point: query `i` (kind, level, byte offset or leaf
+/// index, slot or leaf reflection) answered in the four words at `4 * (n +
+/// i)`: node: header, child address, reflection | record size << 8, codes
+/// count; leaf: the mask reflected by the query's reflection (low, high),
+/// the stored mask's low word, 0.
+const CHECK2_WGSL: &str = r#"
+@compute @workgroup_size(64)
+fn check_decoding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    let n = params.ray_count;
+    if (i >= n) {
+        return;
+    }
+    let kind = image[4u * i];
+    let level = image[4u * i + 1u];
+    let at = image[4u * i + 2u];
+    let slot = image[4u * i + 3u];
+    let out = 4u * (n + i);
+    if (kind == 0u) {
+        let c = codes2(level, at);
+        let child = child2(level, at, c, slot);
+        image[out] = c.header;
+        image[out + 1u] = child.x;
+        image[out + 2u] = child.y | (record_size2(level, at) << 8u);
+        image[out + 3u] = c.count;
+    } else {
+        let bits = leaf_mask(record_address(level, at));
+        let r = reflect_leaf(bits, slot);
+        image[out] = r.x;
+        image[out + 1u] = r.y;
+        image[out + 2u] = bits.x;
+        image[out + 3u] = 0u;
+    }
+}
+"#;
+
 /// Most queries of one DAG.
 const MAX_QUERIES: usize = 6_000;
 
@@ -63,7 +107,11 @@ impl GpuTracer {
         let inner = &self.context.inner;
         let device = &inner.device;
         let mut source = super::layout::shader_source(&self.config);
-        source.push_str(CHECK_WGSL);
+        source.push_str(if self.config.format_v2 {
+            CHECK2_WGSL
+        } else {
+            CHECK_WGSL
+        });
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("vdag decode check"),
             source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -337,4 +385,217 @@ fn wgsl_decoding_reads_nodes_and_leaves_as_the_cpu_does() {
     }
     println!("{checked} records decoded alike; pointer widths {widths:?}");
     assert!(widths.len() >= 2, "pointer widths {widths:?}");
+}
+
+/// Queries of up to [`MAX_QUERIES`] random records of the 2.0 `levels`:
+/// nodes (one query per child) and leaves (with a random reflection),
+/// reached from the root; and what the CPU's decoding (`node::Level`,
+/// `dagfmt::v2::Coding`, `node::logical_leaf`) answers for each: node:
+/// header, child address, reflection | size << 8; leaf: the reflected mask
+/// and the stored mask's low word.
+fn queries_v2(
+    levels: &[LevelView<'_>],
+    rng: &mut Rng,
+    seen_kinds: &mut [usize; 4],
+) -> Vec<([u32; 4], [u32; 3])> {
+    let decoders: Vec<Level> = (0..levels.len())
+        .map(|l| Level::new_v2(&levels[l], levels.get(l + 1)).expect("valid levels"))
+        .collect();
+    let leaf_level = (levels.len() - 1) as u8;
+    let mut records = Vec::new();
+    let mut seen = HashSet::new();
+    let mut pending = if levels[0].item_count == 0 {
+        vec![]
+    } else {
+        vec![(0u8, 0u32)]
+    };
+    while let Some((l, at)) = pending.pop() {
+        if !seen.insert((l, at)) {
+            continue;
+        }
+        records.push((l, at));
+        if l == leaf_level {
+            continue;
+        }
+        let level = &decoders[usize::from(l)];
+        let mask = child_mask(level.header(l, at).expect("a valid file"));
+        for c in (0..8).filter(|c| mask >> c & 1 == 1) {
+            let child = level.child(l, at, mask, c).expect("a valid file");
+            pending.push((l + 1, child.node));
+        }
+    }
+    for i in (1..records.len()).rev() {
+        records.swap(i, (rng.next() % (i as u64 + 1)) as usize);
+    }
+    let mut out = Vec::new();
+    for (l, at) in records {
+        let level = &decoders[usize::from(l)];
+        if l == leaf_level {
+            let bits = level.leaf(l, at).expect("a valid file");
+            let r = (rng.next() % 8) as u8;
+            let logical = logical_leaf(bits, r);
+            out.push((
+                [1, u32::from(l), at, u32::from(r)],
+                [logical as u32, (logical >> 32) as u32, bits as u32],
+            ));
+        } else {
+            let view = &levels[usize::from(l)];
+            let coding = Coding::new(view.widths).expect("valid widths");
+            let size = coding
+                .record_size(view.bytes, u64::from(at))
+                .expect("a record") as u32;
+            let header = level.header(l, at).expect("a valid file");
+            let mask = child_mask(header);
+            let codes = coding.codes(view.bytes, u64::from(at)).expect("codes");
+            for c in (0..8).filter(|c| mask >> c & 1 == 1) {
+                let child = level.child(l, at, mask, c).expect("a valid file");
+                match coding.child(view.bytes, u64::from(at), &codes, c) {
+                    Some(Child::Shared { reflection, .. }) => {
+                        seen_kinds[usize::from(reflection != 0)] += 1
+                    }
+                    Some(Child::Sequential { index, .. }) => {
+                        seen_kinds[2 + usize::from(index > 0 && l + 1 < leaf_level)] += 1
+                    }
+                    None => panic!("a valid record"),
+                }
+                out.push((
+                    [0, u32::from(l), at, c],
+                    [header, child.node, u32::from(child.reflection) | size << 8],
+                ));
+            }
+        }
+        if out.len() >= MAX_QUERIES {
+            break;
+        }
+    }
+    out
+}
+
+/// Checks the device's 2.0 decoding of the 2.0 file `bytes` against the
+/// CPU's, on one storage binding and, where `pages`, on several.
+fn check_v2(
+    ctx: &GpuContext,
+    pipelines: &mut Pipelines,
+    (name, bytes): (&str, &[u8]),
+    pages: bool,
+    rng: &mut Rng,
+    seen_kinds: &mut [usize; 4],
+) -> usize {
+    let dag = Dag2::open(bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let asked = queries_v2(dag.levels(), rng, seen_kinds);
+    if asked.is_empty() {
+        return 0;
+    }
+    let dag_bytes: usize = dag.levels().iter().map(|l| l.bytes.len()).sum();
+    let small_pages = (dag_bytes as u64 / 3).next_power_of_two().max(64);
+    let mut bindings = vec![None];
+    if pages {
+        bindings.push(Some(small_pages));
+    }
+    for max_binding_bytes in bindings {
+        let options = GpuOptions {
+            max_binding_bytes,
+            ..GpuOptions::default()
+        };
+        let gpu = match GpuTracer::with_context_v2(ctx, dag.header(), dag.levels(), None, &options)
+        {
+            Ok(gpu) => gpu,
+            Err(super::GpuError::TooLarge(_)) if max_binding_bytes.is_some() => continue,
+            Err(e) => panic!("{name}: {e}"),
+        };
+        let query: Vec<[u32; 4]> = asked.iter().map(|(q, _)| *q).collect();
+        let answers = gpu.decode_on_device(&query, pipelines);
+        for ((q, expected), got) in asked.iter().zip(&answers) {
+            assert_eq!(
+                &got[..3],
+                expected,
+                "{name} ({} bindings): {} {} of level {} (slot or reflection {})",
+                gpu.binding_count(),
+                if q[0] == 0 { "record" } else { "leaf" },
+                q[2],
+                q[1],
+                q[3]
+            );
+        }
+    }
+    asked.len()
+}
+
+/// The 2.0 decoder: the conformance trace cases upgraded to 2.0, and random
+/// 2.0 DAGs of several depths (also over several storage bindings), whose
+/// references include reflected shared children and sequential children
+/// after the first in interior levels (found by summing record sizes).
+#[test]
+fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
+    let Some(ctx) = context() else { return };
+    let mut pipelines = Pipelines::new();
+    let mut rng = Rng(0x42);
+    let mut checked = 0;
+    // Shared unreflected, shared reflected, sequential first (or leaf),
+    // sequential later in an interior level.
+    let mut kinds = [0usize; 4];
+    let cases = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&cases)
+        .expect("the conformance cases")
+        .map(|e| e.expect("a directory entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "vdag"))
+        .collect();
+    files.sort();
+    assert!(!files.is_empty(), "no .vdag in {}", cases.display());
+    for file in &files {
+        let bytes = std::fs::read(file).expect("a case file");
+        let upgraded = upgrade(&Dag::open(&bytes).expect("a case opens")).expect("upgrade");
+        let name = format!("{} (2.0)", file.display());
+        checked += check_v2(
+            &ctx,
+            &mut pipelines,
+            (&name, &upgraded),
+            false,
+            &mut rng,
+            &mut kinds,
+        );
+    }
+    let mut widths = HashSet::new();
+    for (depth, voxels, clusters) in [
+        (5u8, 60, 2),
+        (8, 4_000, 6),
+        (10, 60_000, 20),
+        (12, 150_000, 0),
+    ] {
+        let side = 1u64 << depth;
+        let points: Vec<[u32; 3]> = if clusters == 0 {
+            (0..voxels)
+                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
+                .collect()
+        } else {
+            let centres: Vec<[u64; 3]> = (0..clusters)
+                .map(|_| [0; 3].map(|_| rng.next() % side))
+                .collect();
+            (0..voxels)
+                .map(|i| {
+                    let c = centres[i % clusters];
+                    let spread = side / 8 + 1;
+                    c.map(|v| ((v + rng.next() % spread).min(side - 1)) as u32)
+                })
+                .collect()
+        };
+        let bytes = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, points)
+            .expect("valid voxels")
+            .to_bytes();
+        let upgraded = upgrade(&Dag::open(&bytes).expect("built DAG opens")).expect("upgrade");
+        let dag = Dag2::open(&upgraded).expect("upgraded DAG opens");
+        widths.extend(dag.levels().iter().filter(|l| !l.is_leaf).map(|l| l.widths));
+        let name = format!("random depth {depth} (2.0)");
+        checked += check_v2(
+            &ctx,
+            &mut pipelines,
+            (&name, &upgraded),
+            true,
+            &mut rng,
+            &mut kinds,
+        );
+    }
+    println!("{checked} 2.0 records decoded alike; kinds {kinds:?}; widths {widths:?}");
+    assert!(kinds.iter().all(|&n| n > 0), "kinds of children {kinds:?}");
+    assert!(widths.len() >= 3, "widths {widths:?}");
 }

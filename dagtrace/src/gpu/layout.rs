@@ -274,8 +274,12 @@ gpu_struct! {
         pub cam_right: [f32; 4],
         /// Up vector scaled by tan(fov/2).
         pub cam_up: [f32; 4],
-        /// Per level: word address of the section, pointer width, units
-        /// (words, or leaves for the leaf level), 0.
+        /// Per level: word address of the section; the reference widths
+        /// (1.0: pointer bytes; 2.0: the bit widths `w1 | w2 << 8 | w3 << 16`,
+        /// spec §23.2, 0 for the leaf level); units (1.0: words; 2.0: bytes;
+        /// leaves for the leaf level), the bound a child address must be
+        /// below; 2.0: the word address of the level's record-start bit
+        /// vector (`upload::record_starts`), 0 when it has none.
         pub levels: [[u32; 4]; MAX_STORED_LEVELS],
     }
 }
@@ -331,6 +335,10 @@ pub(crate) struct ShaderConfig {
     pub pages: u32,
     /// log2 of the words per page (when there is more than one page).
     pub page_shift: u32,
+    /// Whether the DAG is format 2.0 (spec §23): the shader is compiled with
+    /// `FORMAT_V2 = true`, its 2.0 decoder and the accumulated reflections;
+    /// a 1.0 shader has them compiled out (constant-false branches).
+    pub format_v2: bool,
 }
 
 fn constant_u32(s: &mut String, name: &str, value: u32) {
@@ -384,6 +392,7 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
         },
     );
     let _ = writeln!(s, "const SHORT_STACK: bool = {};", config.short_stack);
+    let _ = writeln!(s, "const FORMAT_V2: bool = {};", config.format_v2);
     constant_u32(&mut s, "PAGE_COUNT", config.pages);
     s.push('\n');
     for decl in [

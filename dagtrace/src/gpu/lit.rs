@@ -245,6 +245,13 @@ struct Band {
 impl GpuTracer {
     /// The lit passes, compiled on first use.
     fn lit_pipelines(&self) -> Result<Arc<LitPipelines>, GpuError> {
+        if self.config.format_v2 {
+            // lit.wgsl's own walks (`find_leaf`, `node_occupied`) read 1.0 records.
+            return Err(GpuError::InvalidOptions(
+                "the GPU lit render reads format 1.0 DAGs only (trace and the plain render read 2.0)"
+                    .into(),
+            ));
+        }
         let made = self.lit.get_or_init(|| {
             LitPipelines::new(
                 &self.context.inner.device,

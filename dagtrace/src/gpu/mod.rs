@@ -6,6 +6,9 @@
 //! semantics of spec/VDAG.md (the same cells as [`crate::Tracer`] but at
 //! exact ties, where both are within the tolerance of the semantics);
 //! [`GpuTracer::render`] makes and traces camera rays on the GPU.
+//! [`GpuTracer::with_context_v2`] uploads a format 2.0 DAG (spec §23) and
+//! traces it with the 2.0 variant of the shader, with the answers of the 1.0
+//! DAG of the same voxels (the lit passes read 1.0 only).
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -64,6 +67,7 @@ use glam::DVec3;
 use wgpu::util::DeviceExt as _;
 
 use crate::camera::{Camera, CameraError};
+use dagfmt::v2::LevelView;
 use layout::{
     BATCH_WORKGROUP_SIZE, BINDING_HITS, BINDING_IMAGE, BINDING_PARAMS, BINDING_RAYS, GpuHit,
     GpuParams, INFO_EXHAUSTED, INFO_FACE_SHIFT, INFO_HIT, INFO_LEVEL_SHIFT, INFO_MALFORMED,
@@ -72,7 +76,7 @@ use layout::{
 };
 pub use lit::LitTimes;
 use prepare::Frame;
-use upload::Placement;
+use upload::{Placement, UploadLevel};
 
 /// Why the GPU tracer cannot do what was asked.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -507,6 +511,97 @@ impl GpuTracer {
         dag: &Dag<'_>,
         options: &GpuOptions,
     ) -> Result<Self, GpuError> {
+        let saturated = upload::saturated_counts(dag)?;
+        Self::build(
+            context,
+            dag.header(),
+            dag.is_empty(),
+            &UploadLevel::v1(dag),
+            saturated,
+            false,
+            dag.color_table(),
+            options,
+        )
+    }
+
+    /// Makes a context ([`GpuContext::new`] with `options.adapter`) and
+    /// uploads a format 2.0 DAG (see [`GpuTracer::with_context_v2`]).
+    pub fn new_v2(
+        header: &dagfmt::Header,
+        levels: &[LevelView<'_>],
+        colors: Option<dagfmt::ColorTable<'_>>,
+        options: &GpuOptions,
+    ) -> Result<Self, GpuError> {
+        Self::with_context_v2(
+            &GpuContext::new(options.adapter)?,
+            header,
+            levels,
+            colors,
+            options,
+        )
+    }
+
+    /// Uploads the level sections of a format 2.0 DAG (spec §23; root
+    /// first, the leaf level last, as [`dagfmt::Dag2::levels`] or
+    /// [`dagfmt::v2::Encoded::views`] give them) with `header`'s depth, root
+    /// cube and attribute kind, to the device of `context`. The shader is
+    /// the 2.0 variant (its own pipelines): it decodes the records of §23.2
+    /// and carries the accumulated reflection of §23.4, with the answers of
+    /// the 1.0 file of the same voxels. Fails when the levels do not match
+    /// the depth, a node level's widths are invalid (E070), or a level is
+    /// more than 4 GiB (record offsets are 32-bit).
+    pub fn with_context_v2(
+        context: &GpuContext,
+        header: &dagfmt::Header,
+        levels: &[LevelView<'_>],
+        colors: Option<dagfmt::ColorTable<'_>>,
+        options: &GpuOptions,
+    ) -> Result<Self, GpuError> {
+        if levels.len() + 1 != usize::from(header.depth)
+            || levels.last().is_some_and(|l| !l.is_leaf)
+        {
+            return Err(GpuError::InvalidOptions(format!(
+                "{} 2.0 level sections for a DAG of depth {}",
+                levels.len(),
+                header.depth
+            )));
+        }
+        for view in levels {
+            if view.bytes.len() as u64 > u64::from(u32::MAX) {
+                return Err(GpuError::TooLarge(format!(
+                    "a 2.0 level of {} bytes is more than the shader addresses (4 GiB)",
+                    view.bytes.len()
+                )));
+            }
+            if !view.is_leaf && !view.bytes.is_empty() {
+                dagfmt::v2::Coding::new(view.widths).map_err(GpuError::Malformed)?;
+            }
+        }
+        let saturated = upload::saturated_counts_v2(levels, header.attribute_kind)?;
+        let starts = upload::record_starts(levels);
+        Self::build(
+            context,
+            header,
+            levels[0].item_count == 0,
+            &UploadLevel::v2(levels, &starts),
+            saturated,
+            true,
+            colors,
+            options,
+        )
+    }
+
+    /// Uploads `levels` (of either format) and compiles the shader variant.
+    fn build(
+        context: &GpuContext,
+        header: &dagfmt::Header,
+        empty: bool,
+        levels: &[UploadLevel<'_>],
+        saturated: Vec<(u8, u32, u64)>,
+        format_v2: bool,
+        colors: Option<dagfmt::ColorTable<'_>>,
+        options: &GpuOptions,
+    ) -> Result<Self, GpuError> {
         let (stack_size, short_stack) = match options.stack {
             StackMode::Full => (MAX_STORED_LEVELS as u32, false),
             StackMode::Short(n) if n.is_power_of_two() && n <= 16 => (n, true),
@@ -534,13 +629,13 @@ impl GpuTracer {
                 "a binding of {cap} bytes is too small"
             )));
         }
-        let saturated = upload::saturated_counts(dag)?;
-        let placement = Placement::new(dag, saturated, cap, context.max_pages().max(1))?;
+        let placement = Placement::new(levels, saturated, cap, context.max_pages().max(1))?;
         let config = ShaderConfig {
             stack_size,
             short_stack,
             pages: placement.pages,
             page_shift: placement.page_shift(),
+            format_v2,
         };
         let pipelines = context.pipelines(config)?;
         let device = &context.inner.device;
@@ -558,7 +653,7 @@ impl GpuTracer {
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::TooLarge(e.to_string()));
         }
-        upload::upload(device, &context.inner.queue, &placement, dag, &pages)?;
+        upload::upload(device, &context.inner.queue, &placement, levels, &pages)?;
         let entries: Vec<wgpu::BindGroupEntry> = pages
             .iter()
             .enumerate()
@@ -572,10 +667,9 @@ impl GpuTracer {
             layout: &pipelines.pages_layout,
             entries: &entries,
         });
-        let header = dag.header();
         let depth = header.depth;
         let indexed = options.compute_index && header.attribute_kind == AttributeKind::VoxelCount;
-        let gpu_colors = match dag.color_table() {
+        let gpu_colors = match colors {
             Some(table) if options.colors && indexed => {
                 Some(Arc::new(colors::GpuColors::new(context, table, cap)?))
             }
@@ -585,7 +679,7 @@ impl GpuTracer {
             depth,
             root_min: header.root_min,
             grid_scale: (1u64 << depth) as f64 / header.root_size,
-            empty: dag.is_empty(),
+            empty,
             indexed,
         };
         // Each node of a level is entered at most a few times per cell the ray
@@ -607,7 +701,7 @@ impl GpuTracer {
             render_level: u32::from(depth),
             width: 0,
             height: 0,
-            empty: u32::from(dag.is_empty()),
+            empty: u32::from(empty),
             pad0: 0,
             cam_origin: [0.0; 4],
             cam_forward: [0.0; 4],

@@ -7,26 +7,33 @@ use super::layout::{
 use wgpu::naga;
 
 fn configs() -> Vec<ShaderConfig> {
-    let mut out = vec![ShaderConfig {
-        stack_size: layout::MAX_STORED_LEVELS as u32,
-        short_stack: false,
-        pages: 1,
-        page_shift: 0,
-    }];
-    for stack_size in [1, 2, 4, 16] {
+    let mut out = Vec::new();
+    // Each configuration in both variants: 1.0 and 2.0 records.
+    for format_v2 in [false, true] {
         out.push(ShaderConfig {
-            stack_size,
+            stack_size: layout::MAX_STORED_LEVELS as u32,
+            short_stack: false,
+            pages: 1,
+            page_shift: 0,
+            format_v2,
+        });
+        for stack_size in [1, 2, 4, 16] {
+            out.push(ShaderConfig {
+                stack_size,
+                short_stack: true,
+                pages: 3,
+                page_shift: 14,
+                format_v2,
+            });
+        }
+        out.push(ShaderConfig {
+            stack_size: 4,
             short_stack: true,
-            pages: 3,
-            page_shift: 14,
+            pages: MAX_PAGES,
+            page_shift: 20,
+            format_v2,
         });
     }
-    out.push(ShaderConfig {
-        stack_size: 4,
-        short_stack: true,
-        pages: MAX_PAGES,
-        page_shift: 20,
-    });
     out
 }
 
@@ -122,6 +129,7 @@ fn preamble_carries_the_rust_constants() {
         "const STACK_SIZE: u32 = 1u;".to_string(),
         "const STACK_MASK: u32 = 0u;".to_string(),
         "const SHORT_STACK: bool = true;".to_string(),
+        "const FORMAT_V2: bool = false;".to_string(),
         "case 2u: { return page2[offset]; }".to_string(),
     ] {
         assert!(source.contains(&line), "missing `{line}` in\n{source}");

@@ -18,8 +18,20 @@
 // - the child pointer is found by rank (popcount of the lower mask bits);
 // - the last two levels (the 4^3 brick of a leaf) come from the 64-bit mask.
 //
-// Stack: one entry (node word address, child mask | remaining chain << 8) per
-// interior level. With SHORT_STACK the stack is a ring of STACK_SIZE entries;
+// Format 2.0 (spec §23; FORMAT_V2, a separate shader: the 1.0 shader has
+// these branches compiled out): a node's address is its byte offset in its
+// level, its references are decoded by the functions below (the counterpart
+// of dagfmt::v2::Coding), and each frame carries the accumulated reflection
+// R (§23.4). A node reached with R is traced as a 1.0 node by a ray whose
+// octant is `neg ^ R` (the CPU's walk.rs does the same): physical slot of
+// mirrored child j is `j ^ neg ^ R`, and a leaf's sub-brick and voxel bits
+// are both indexed with `neg ^ R`; a child's R is its parent's XOR the
+// reference's reflection. The dense index sums the siblings at physical
+// slots p with (p ^ R) < c and counts the bits of the reflected leaf mask.
+//
+// Stack: one entry (node word address (2.0: byte offset), child mask |
+// remaining chain << 8 | R << 16) per interior level; 2.0 keeps the node's
+// codes in a second array. With SHORT_STACK the stack is a ring of STACK_SIZE entries;
 // when the traversal pops to a level whose entry was overwritten, it restarts
 // from the root and replays the path to that level (the path is the current
 // cell's coordinate bits): every node on the way is evaluated with the same
@@ -145,14 +157,230 @@ fn leaf_mask(a: u32) -> vec2<u32> {
     return vec2<u32>(load_word(a), load_word(a + 1u));
 }
 
+// ---- Format 2.0 records (spec §23.2, §23.3) ----
+
+// Bits 0, 2, 4, ... of a code word: the low bit of each 2-bit code.
+const LOW_CODE_BITS: u32 = 0x55555u;
+
+// A 2.0 record's header word and its m 2-bit codes (code i in bits 2i, 2i+1).
+struct Codes2 {
+    header: u32,
+    codes: u32,
+    count: u32,
+    // The traversal's cursor: the last sequential child found (position j,
+    // address), NO_CURSOR when none; see `child2_from`.
+    cursor_j: u32,
+    cursor_at: u32,
+}
+
+// The 32 bits at bit `s` (0..32) of the 64-bit little-endian (w0, w1).
+fn funnel(w0: u32, w1: u32, s: u32) -> u32 {
+    return select((w0 >> s) | (w1 << (32u - s)), w0, s == 0u);
+}
+
+// The header and codes of the record at byte `off` of 2.0 level `level`: at
+// most 3 aligned loads (spec §23.8). As dagfmt::v2::Coding::codes.
+fn codes2(level: u32, off: u32) -> Codes2 {
+    let a = params.levels[level].x + (off >> 2u);
+    let s = (off & 3u) * 8u;
+    let w0 = load_word(a);
+    let w1 = load_word(a + 1u);
+    var c: Codes2;
+    c.header = funnel(w0, w1, s);
+    let k = countOneBits(c.header & 0xffu);
+    // The k codes and the base code, if any: at most 18 bits from byte off + 4.
+    var raw = w1 >> s;
+    if (s + 2u * k + 2u > 32u) {
+        raw |= load_word(a + 2u) << (32u - s);
+    }
+    let k_codes = raw & ((1u << (2u * k)) - 1u);
+    let n_shared = countOneBits((k_codes | (k_codes >> 1u)) & LOW_CODE_BITS);
+    let count = k + select(0u, 1u, n_shared < k);
+    var codes = raw & ((1u << (2u * count)) - 1u);
+    if (count > k && (codes >> (2u * k)) == 0u) {
+        // A base code of 0 is invalid; it reads as 1, as on the CPU.
+        codes |= 1u << (2u * k);
+    }
+    c.codes = codes;
+    c.count = count;
+    c.cursor_j = NO_CURSOR;
+    c.cursor_at = 0u;
+    return c;
+}
+
+// Width in bits of the references of `code` (1..=3) of a level whose widths
+// word is `widths` (w1 | w2 << 8 | w3 << 16).
+fn code_width(widths: u32, code: u32) -> u32 {
+    return (widths >> (8u * (code - 1u))) & 0xffu;
+}
+
+// Bits of the references of the codes in `codes` (a prefix of a code word):
+// n1·w1 + n2·w2 + n3·w3, three masked popcounts.
+fn reference_bits2(widths: u32, codes: u32) -> u32 {
+    let low = codes & LOW_CODE_BITS;
+    let high = (codes >> 1u) & LOW_CODE_BITS;
+    return countOneBits(low & ~high) * (widths & 0xffu)
+        + countOneBits(high & ~low) * ((widths >> 8u) & 0xffu)
+        + countOneBits(low & high) * ((widths >> 16u) & 0xffu);
+}
+
+// Bytes of the record at byte `off` of 2.0 level `level`.
+fn record_size2(level: u32, off: u32) -> u32 {
+    let c = codes2(level, off);
+    return 4u + (2u * c.count + reference_bits2(params.levels[level].y, c.codes) + 7u) / 8u;
+}
+
+// The `width`-bit value (1 to 40 bits) at bit `bit` of the record at byte
+// `off` of level `level`, least significant bit first: (bits 0..32, bits
+// 32..40). 1 to 3 aligned loads.
+fn value2(level: u32, off: u32, bit: u32, width: u32) -> vec2<u32> {
+    let byte = off + (bit >> 3u);
+    let a = params.levels[level].x + (byte >> 2u);
+    let s = ((byte & 3u) << 3u) | (bit & 7u);
+    let w0 = load_word(a);
+    var w1 = 0u;
+    var w2 = 0u;
+    if (s + width > 32u) {
+        w1 = load_word(a + 1u);
+        if (s + width > 64u) {
+            w2 = load_word(a + 2u);
+        }
+    }
+    var lo = funnel(w0, w1, s);
+    var hi = funnel(w1, w2, s);
+    if (width < 32u) {
+        lo &= (1u << width) - 1u;
+        hi = 0u;
+    } else {
+        hi &= (1u << (width - 32u)) - 1u;
+    }
+    return vec2<u32>(lo, hi);
+}
+
+// No sequential child found yet (`Codes2::cursor_j`).
+const NO_CURSOR: u32 = 0xffffffffu;
+
+// The child at physical slot `slot` (set in the child mask) of the record at
+// byte `off` of 2.0 level `level`, whose header and codes are `c`: (address
+// in level + 1, reflection). A shared child's reference is at bit 2m +
+// n1·w1 + n2·w2 + n3·w3 of the stream; a sequential child is `base + j` in
+// the leaf level, else `base` plus the sizes of the j sequential siblings
+// before it. An address beyond 32 bits reads as 0xffffffff (out of range).
+fn child2(level: u32, off: u32, c: Codes2, slot: u32) -> vec2<u32> {
+    return child2_from(level, off, c, slot).xy;
+}
+
+// `child2`, starting the sum of sequential siblings' sizes from the cursor
+// `c.cursor_j`/`c.cursor_at` (the j-th sequential child's address, found
+// before) where it is at or before the child asked for. `.z`: the child's
+// sequential position j in an interior child level (a new cursor), else
+// NO_CURSOR.
+fn child2_from(level: u32, off: u32, c: Codes2, slot: u32) -> vec3<u32> {
+    let widths = params.levels[level].y;
+    let mask = c.header & 0xffu;
+    let rank = countOneBits(mask & ((1u << slot) - 1u));
+    let code = (c.codes >> (2u * rank)) & 3u;
+    let before = c.codes & ((1u << (2u * rank)) - 1u);
+    let stream = 32u + 2u * c.count;
+    if (code != 0u) {
+        let v = value2(level, off, stream + reference_bits2(widths, before), code_width(widths, code));
+        let dest = select(0xffffffffu, (v.x >> 3u) | (v.y << 29u), v.y < 8u);
+        return vec3<u32>(dest, v.x & 7u, NO_CURSOR);
+    }
+    let j = rank - countOneBits((before | (before >> 1u)) & LOW_CODE_BITS);
+    let child_level = level + 1u;
+    var i = 0u;
+    var dest = 0u;
+    let interior = child_level != params.leaf_level;
+    if (interior && c.cursor_j <= j) {
+        i = c.cursor_j;
+        dest = c.cursor_at;
+    } else {
+        let k = countOneBits(mask);
+        let child_codes = c.codes & ((1u << (2u * k)) - 1u);
+        let base_code = (c.codes >> (2u * k)) & 3u;
+        let b = value2(level, off, stream + reference_bits2(widths, child_codes), code_width(widths, base_code));
+        dest = select(0xffffffffu, b.x, b.y == 0u);
+    }
+    if (!interior) {
+        return vec3<u32>(select(0xffffffffu, dest + j, dest <= 0xffffffffu - j), 0u, NO_CURSOR);
+    }
+    return vec3<u32>(next_records(child_level, dest, j - i), 0u, j);
+}
+
+// The byte offset of the record `n` records after the one at byte `at` of
+// 2.0 level `level`: the n-th set bit after bit `at` of the level's
+// record-start bit vector (uploaded with it, `upload::record_starts`),
+// usually one load; 0xffffffff past the level. (`at + size(at) + ...`, the
+// sizes read from each record's header and codes, `record_size2`, gives
+// the same in a valid level.)
+fn next_records(level: u32, at: u32, count: u32) -> u32 {
+    if (count == 0u) {
+        return at;
+    }
+    let starts = params.levels[level].w;
+    let words = (params.levels[level].z + 31u) / 32u;
+    var n = count;
+    var w = at >> 5u;
+    if (w >= words) {
+        return 0xffffffffu;
+    }
+    var m = load_word(starts + w) & ~((2u << (at & 31u)) - 1u);
+    loop {
+        let c = countOneBits(m);
+        if (c >= n) {
+            for (var t = 1u; t < n; t += 1u) {
+                m &= m - 1u;
+            }
+            return w * 32u + countTrailingZeros(m);
+        }
+        n -= c;
+        w += 1u;
+        if (w >= words) {
+            return 0xffffffffu;
+        }
+        m = load_word(starts + w);
+    }
+    return 0xffffffffu;
+}
+
+// The leaf mask `bits` (low, high word) of a leaf reached with accumulated
+// reflection `r`, as its logical brick: bit b is stored bit b ^ (r | r << 3)
+// (spec §23.4): flipping index bit i swaps the halves of every group of
+// 2^(i+1) bits, six masked swaps at most.
+fn reflect_leaf(bits: vec2<u32>, r: u32) -> vec2<u32> {
+    var m = bits;
+    let rr = r | (r << 3u);
+    if ((rr & 1u) != 0u) {
+        m = ((m & vec2<u32>(0x55555555u)) << vec2<u32>(1u)) | ((m >> vec2<u32>(1u)) & vec2<u32>(0x55555555u));
+    }
+    if ((rr & 2u) != 0u) {
+        m = ((m & vec2<u32>(0x33333333u)) << vec2<u32>(2u)) | ((m >> vec2<u32>(2u)) & vec2<u32>(0x33333333u));
+    }
+    if ((rr & 4u) != 0u) {
+        m = ((m & vec2<u32>(0x0f0f0f0fu)) << vec2<u32>(4u)) | ((m >> vec2<u32>(4u)) & vec2<u32>(0x0f0f0f0fu));
+    }
+    if ((rr & 8u) != 0u) {
+        m = ((m & vec2<u32>(0x00ff00ffu)) << vec2<u32>(8u)) | ((m >> vec2<u32>(8u)) & vec2<u32>(0x00ff00ffu));
+    }
+    if ((rr & 16u) != 0u) {
+        m = (m << vec2<u32>(16u)) | (m >> vec2<u32>(16u));
+    }
+    if ((rr & 32u) != 0u) {
+        m = m.yx;
+    }
+    return m;
+}
+
 struct BrickHit {
     hit: bool,
     cell: vec3<u32>,
 }
 
 // The first set sub-brick (level D-1) or voxel (level D) of the 4^3 brick at
-// word address `leaf`, at mirrored brick coordinates `idx`.
-fn brick(p: Prepared, leaf: u32, idx: vec3<u32>) -> BrickHit {
+// word address `leaf`, at mirrored brick coordinates `idx`, the stored mask
+// seen by a ray of octant `neg` (`p.neg`, XOR the leaf's reflection in 2.0).
+fn brick(p: Prepared, leaf: u32, idx: vec3<u32>, neg: u32) -> BrickHit {
     var r: BrickHit;
     r.hit = false;
     let bits = leaf_mask(leaf);
@@ -170,14 +398,14 @@ fn brick(p: Prepared, leaf: u32, idx: vec3<u32>) -> BrickHit {
         return r;
     }
     let subs = byte_flags(w0) | (byte_flags(w1) << 4u);
-    var remaining = chain(te, tx, t2) & mirror_mask(subs, p.neg);
+    var remaining = chain(te, tx, t2) & mirror_mask(subs, neg);
     loop {
         if (remaining == 0u) {
             break;
         }
         let m = countTrailingZeros(remaining);
         remaining &= remaining - 1u;
-        let sub = m ^ p.neg;
+        let sub = m ^ neg;
         let up = axis_bits(m);
         let sub_idx = idx * 2u + up;
         if (p.level < params.depth) {
@@ -196,7 +424,7 @@ fn brick(p: Prepared, leaf: u32, idx: vec3<u32>) -> BrickHit {
         }
         let word = select(w0, w1, sub >= 4u);
         let voxels = (word >> (8u * (sub & 3u))) & 0xffu;
-        let chain_voxels = chain(se, sx, s_mid) & mirror_mask(voxels, p.neg);
+        let chain_voxels = chain(se, sx, s_mid) & mirror_mask(voxels, neg);
         if (chain_voxels != 0u) {
             r.hit = true;
             r.cell = sub_idx * 2u + axis_bits(countTrailingZeros(chain_voxels));
@@ -221,7 +449,7 @@ fn traverse(p: Prepared) -> Found {
     let depth = params.depth;
     let leaf_level = params.leaf_level;
     if (leaf_level == 0u) {
-        let b = brick(p, params.levels[0].x, vec3<u32>(0u));
+        let b = brick(p, params.levels[0].x, vec3<u32>(0u), p.neg);
         f.hit = b.hit;
         f.cell = b.cell;
         f.level = p.level;
@@ -229,9 +457,14 @@ fn traverse(p: Prepared) -> Found {
         return f;
     }
     var stack: array<vec2<u32>, STACK_SIZE>;
+    // 2.0: the codes of each frame's node (unused, and compiled out, in 1.0).
+    var codes_stack: array<Codes2, STACK_SIZE>;
     var level = 0u;
     var idx = vec3<u32>(0u);
-    var addr = params.levels[0].x;
+    // The node to enter: 1.0 word address, 2.0 byte offset in its level.
+    var addr = select(params.levels[0].x, 0u, FORMAT_V2);
+    // 2.0: accumulated reflection of the current frame (0 in 1.0).
+    var refl = 0u;
     var enter = true;
     // Short stack: the level whose entry is being rebuilt, the cell whose
     // path is replayed, and the lowest level whose entry is still valid.
@@ -253,7 +486,13 @@ fn traverse(p: Prepared) -> Found {
         if (enter) {
             enter = false;
             node = addr;
-            mask = node_mask(addr);
+            if (FORMAT_V2) {
+                let c = codes2(level, addr);
+                codes_stack[level & STACK_MASK] = c;
+                mask = c.header & 0xffu;
+            } else {
+                mask = node_mask(addr);
+            }
             let size = f32(1u << (depth - level));
             let lo = vec3<f32>(idx) * size;
             let t_lo = (lo - p.o) * p.inv;
@@ -262,7 +501,7 @@ fn traverse(p: Prepared) -> Found {
             let te = max(max3(t_lo), p.tmin);
             let tx = min(min3(t_hi), p.tmax);
             if (te <= tx) {
-                remaining = chain(te, tx, t_mid) & mirror_mask(mask, p.neg);
+                remaining = chain(te, tx, t_mid) & mirror_mask(mask, p.neg ^ refl);
             }
             if (SHORT_STACK) {
                 if (level >= bottom + STACK_SIZE) {
@@ -280,12 +519,16 @@ fn traverse(p: Prepared) -> Found {
                     }
                 }
             }
-            stack[level & STACK_MASK] = vec2<u32>(node, mask | (remaining << 8u));
+            stack[level & STACK_MASK] = vec2<u32>(node, mask | (remaining << 8u) | (refl << 16u));
         } else {
             let e = stack[level & STACK_MASK];
             node = e.x;
             mask = e.y & 0xffu;
             remaining = e.y >> 8u;
+            if (FORMAT_V2) {
+                remaining &= 0xffu;
+                refl = e.y >> 16u;
+            }
         }
         if (!forced) {
             if (remaining == 0u) {
@@ -297,7 +540,8 @@ fn traverse(p: Prepared) -> Found {
                     path = idx;
                     level = 0u;
                     idx = vec3<u32>(0u);
-                    addr = params.levels[0].x;
+                    addr = select(params.levels[0].x, 0u, FORMAT_V2);
+                    refl = 0u;
                     bottom = 0u;
                     enter = true;
                     continue;
@@ -308,7 +552,7 @@ fn traverse(p: Prepared) -> Found {
             }
             j = countTrailingZeros(remaining);
             remaining &= remaining - 1u;
-            stack[level & STACK_MASK].y = mask | (remaining << 8u);
+            stack[level & STACK_MASK].y = mask | (remaining << 8u) | (refl << 16u);
         }
         let child_idx = idx * 2u + axis_bits(j);
         let child_level = level + 1u;
@@ -319,13 +563,26 @@ fn traverse(p: Prepared) -> Found {
             break;
         }
         let child_info = params.levels[child_level];
-        let pointer = child_reference(node, level, mask, j ^ p.neg);
+        var pointer = 0u;
+        var child_refl = 0u;
+        if (FORMAT_V2) {
+            let ch = child2_from(level, node, codes_stack[level & STACK_MASK], j ^ p.neg ^ refl);
+            pointer = ch.x;
+            child_refl = refl ^ ch.y;
+            if (ch.z != NO_CURSOR) {
+                // Later sequential siblings are found from this one.
+                codes_stack[level & STACK_MASK].cursor_j = ch.z;
+                codes_stack[level & STACK_MASK].cursor_at = ch.x;
+            }
+        } else {
+            pointer = child_reference(node, level, mask, j ^ p.neg);
+        }
         if (pointer >= child_info.z) {
             f.status = INFO_MALFORMED;
             break;
         }
         if (child_level == leaf_level) {
-            let b = brick(p, child_info.x + 2u * pointer, child_idx);
+            let b = brick(p, child_info.x + 2u * pointer, child_idx, p.neg ^ child_refl);
             if (b.hit) {
                 f.hit = true;
                 f.cell = b.cell;
@@ -336,7 +593,8 @@ fn traverse(p: Prepared) -> Found {
         }
         level = child_level;
         idx = child_idx;
-        addr = child_info.x + pointer;
+        addr = select(child_info.x + pointer, pointer, FORMAT_V2);
+        refl = child_refl;
         enter = true;
     }
     f.iterations = iterations;
@@ -391,10 +649,76 @@ fn child_at(cell: vec3<u32>, shift: u32) -> u32 {
     return path_child(cell, shift);
 }
 
+// Voxel count of the child at byte offset (leaf index) `dest` of 2.0 level
+// `level`; a saturated record's count is in the host's table under the word
+// of its first byte (records are at least 5 bytes: one starts per word).
+fn subtree_count2(level: u32, dest: u32) -> vec2<u32> {
+    let info = params.levels[level];
+    if (level == params.leaf_level) {
+        let bits = leaf_mask(info.x + 2u * dest);
+        return vec2<u32>(countOneBits(bits.x) + countOneBits(bits.y), 0u);
+    }
+    let count = codes2(level, dest).header >> CHILD_MASK_BITS;
+    if (count == COUNT_SATURATED) {
+        return saturated_count(info.x + (dest >> 2u));
+    }
+    return vec2<u32>(count, 0u);
+}
+
+// `dense_index` of a 2.0 DAG (spec §23.5): with the accumulated reflection
+// R, logical child c is at physical slot c ^ R, the earlier siblings are the
+// set slots p with (p ^ R) < c, and the leaf's bits are counted in its mask
+// reflected by R.
+fn dense_index2(cell: vec3<u32>, level: u32) -> vec2<u32> {
+    var index = vec2<u32>(0u);
+    var off = 0u;
+    var r = 0u;
+    let leaf_level = params.leaf_level;
+    let interior = min(level, leaf_level);
+    for (var l = 0u; l < interior; l += 1u) {
+        let codes = codes2(l, off);
+        let mask = codes.header & 0xffu;
+        let c = child_at(cell, level - 1u - l);
+        for (var s = 0u; s < 8u; s += 1u) {
+            if ((mask & (1u << s)) != 0u && (s ^ r) < c) {
+                index = add64(index, subtree_count2(l + 1u, child2(l, off, codes, s).x));
+            }
+        }
+        let ch = child2(l, off, codes, c ^ r);
+        off = ch.x;
+        r ^= ch.y;
+    }
+    if (level > leaf_level) {
+        let bits = reflect_leaf(leaf_mask(params.levels[leaf_level].x + 2u * off), r);
+        index = add64(index, vec2<u32>(leaf_rank(bits, cell, level), 0u));
+    }
+    return index;
+}
+
+// Set bits of the (logical) leaf mask `bits` before the first voxel of cell
+// `cell` of level `level` (D - 1 or D).
+fn leaf_rank(bits: vec2<u32>, cell: vec3<u32>, level: u32) -> u32 {
+    var below: u32;
+    if (level == params.depth) {
+        let hi = child_at(cell & vec3<u32>(2u), 1u);
+        let lo = child_at(cell & vec3<u32>(1u), 0u);
+        below = hi * 8u + lo;
+    } else {
+        below = 8u * child_at(cell, 0u);
+    }
+    if (below < 32u) {
+        return countOneBits(bits.x & ((1u << below) - 1u));
+    }
+    return countOneBits(bits.x) + countOneBits(bits.y & ((1u << (below - 32u)) - 1u));
+}
+
 // The dense index of the first voxel of cell `cell` (file frame) of level
 // `level`: the counts of the earlier siblings on every level of its path plus
 // the set bits before it in its leaf.
 fn dense_index(cell: vec3<u32>, level: u32) -> vec2<u32> {
+    if (FORMAT_V2) {
+        return dense_index2(cell, level);
+    }
     var index = vec2<u32>(0u);
     var addr = params.levels[0].x;
     let leaf_level = params.leaf_level;
@@ -412,24 +736,7 @@ fn dense_index(cell: vec3<u32>, level: u32) -> vec2<u32> {
         addr = child.x + select(pointer, 2u * pointer, l + 1u == leaf_level);
     }
     if (level > leaf_level) {
-        let bits = leaf_mask(addr);
-        let w0 = bits.x;
-        let w1 = bits.y;
-        var below: u32;
-        if (level == params.depth) {
-            let hi = child_at(cell & vec3<u32>(2u), 1u);
-            let lo = child_at(cell & vec3<u32>(1u), 0u);
-            below = hi * 8u + lo;
-        } else {
-            below = 8u * child_at(cell, 0u);
-        }
-        var n: u32;
-        if (below < 32u) {
-            n = countOneBits(w0 & ((1u << below) - 1u));
-        } else {
-            n = countOneBits(w0) + countOneBits(w1 & ((1u << (below - 32u)) - 1u));
-        }
-        index = add64(index, vec2<u32>(n, 0u));
+        index = add64(index, vec2<u32>(leaf_rank(leaf_mask(addr), cell, level), 0u));
     }
     return index;
 }

@@ -1,8 +1,13 @@
 //! Placing a DAG's words in GPU storage buffers.
 //!
 //! The shader sees one address space of 32-bit words: the level sections one
-//! after the other (root first, the leaf level last), then the table of
-//! saturated voxel counts. The space is cut into pages of a power-of-two
+//! after the other (root first, the leaf level last), each from a word
+//! boundary, then the table of saturated voxel counts. A format 2.0 level
+//! (spec §23) is uploaded as its bytes, like a 1.0 level: its records are
+//! unaligned, and the shader reads them with aligned word loads at byte
+//! offsets ([`UploadLevel`] says how each level is addressed); after each
+//! 2.0 level named by sequential runs comes its record-start bit vector
+//! ([`record_starts`]). The space is cut into pages of a power-of-two
 //! number of words, one storage binding each, so that a DAG larger than the
 //! largest storage binding still fits (`load_word` in the generated preamble
 //! picks the page). Records may straddle pages: every word is looked up on its
@@ -14,8 +19,103 @@
 use super::GpuError;
 use super::layout::MAX_STORED_LEVELS;
 use dagfmt::layout::{AttributeKind, COUNT_SATURATED};
+use dagfmt::v2::LevelView;
 use dagfmt::{Dag, FormatError};
 use rustc_hash::FxHashMap;
+
+/// One level section as the shader addresses it (an entry of
+/// `GpuParams::levels` besides its first word).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct UploadLevel<'a> {
+    /// The section's bytes.
+    pub bytes: &'a [u8],
+    /// The widths word: 1.0 pointer bytes; 2.0 `w1 | w2 << 8 | w3 << 16`.
+    pub widths: u32,
+    /// Bound of a child address into this level: 1.0 words, 2.0 bytes, leaves.
+    pub units: u64,
+    /// 2.0 levels named by sequential runs: the record-start bit vector
+    /// ([`record_starts`]), placed after the level's bytes.
+    pub starts: Option<&'a [u32]>,
+}
+
+impl<'a> UploadLevel<'a> {
+    /// The levels of a 1.0 DAG.
+    pub fn v1(dag: &Dag<'a>) -> Vec<Self> {
+        dag.levels()
+            .iter()
+            .map(|section| UploadLevel {
+                bytes: section.bytes,
+                widths: u32::from(section.pointer_width),
+                units: if section.is_leaf {
+                    section.bytes.len() as u64 / 8
+                } else {
+                    section.bytes.len() as u64 / 4
+                },
+                starts: None,
+            })
+            .collect()
+    }
+
+    /// The levels of a 2.0 DAG (spec §23.2: records at byte offsets), with
+    /// the record-start bit vectors `starts` (one per level, empty for none).
+    pub fn v2(levels: &[LevelView<'a>], starts: &'a [Vec<u32>]) -> Vec<Self> {
+        levels
+            .iter()
+            .zip(starts)
+            .map(|(view, starts)| UploadLevel {
+                bytes: view.bytes,
+                widths: if view.is_leaf {
+                    0
+                } else {
+                    u32::from(view.widths[0])
+                        | u32::from(view.widths[1]) << 8
+                        | u32::from(view.widths[2]) << 16
+                },
+                units: if view.is_leaf {
+                    view.bytes.len() as u64 / 8
+                } else {
+                    view.bytes.len() as u64
+                },
+                starts: (!starts.is_empty()).then_some(starts.as_slice()),
+            })
+            .collect()
+    }
+}
+
+/// The record-start bit vectors of the 2.0 node levels 1 ..= D − 3 (the
+/// interior levels whose records parents name by sequential runs, spec
+/// §23.3): bit b set when a record starts at byte b. With it the shader finds
+/// the j-th sequential child of a run as the j-th set bit after the run's
+/// base (one or two loads), instead of reading the headers and codes of the
+/// j records before it; it is an index built at upload, like the table of
+/// saturated counts, an eighth of the level's size. Empty for the other
+/// levels, and where a record does not decode (a malformed level: the bits
+/// found so far are kept).
+pub(crate) fn record_starts(levels: &[LevelView<'_>]) -> Vec<Vec<u32>> {
+    levels
+        .iter()
+        .enumerate()
+        .map(|(l, view)| {
+            if l == 0 || view.is_leaf || view.bytes.is_empty() {
+                return Vec::new();
+            }
+            let Ok(coding) = dagfmt::v2::Coding::new(view.widths) else {
+                return Vec::new();
+            };
+            let len = view.bytes.len() as u64;
+            let mut bits = vec![0u32; len.div_ceil(32) as usize];
+            let mut at = 0u64;
+            while at < len {
+                bits[(at / 32) as usize] |= 1 << (at % 32);
+                match coding.record_size(view.bytes, at) {
+                    Some(size) => at += size,
+                    None => break,
+                }
+            }
+            bits
+        })
+        .collect()
+}
 
 /// Bytes handed to one `Queue::write_buffer` call.
 const CHUNK_BYTES: usize = 4 << 20;
@@ -25,7 +125,7 @@ const FLUSH_BYTES: usize = 64 << 20;
 /// Where everything lies in the word address space.
 #[derive(Clone, Debug)]
 pub(crate) struct Placement {
-    /// Per stored level: first word, pointer width, units (words, or leaves).
+    /// Per stored level: first word, widths, units, flags (see [`UploadLevel`]).
     pub levels: [[u32; 4]; MAX_STORED_LEVELS],
     /// First word of the saturated-count table.
     pub sat_base: u32,
@@ -39,30 +139,29 @@ pub(crate) struct Placement {
 }
 
 impl Placement {
-    /// Lays `dag` out for pages of at most `max_page_bytes` bytes and at most
-    /// `max_pages` pages.
+    /// Lays `dag_levels` out for pages of at most `max_page_bytes` bytes and
+    /// at most `max_pages` pages.
     pub fn new(
-        dag: &Dag<'_>,
+        dag_levels: &[UploadLevel<'_>],
         saturated: Vec<(u8, u32, u64)>,
         max_page_bytes: u64,
         max_pages: u32,
     ) -> Result<Self, GpuError> {
         let mut levels = [[0u32; 4]; MAX_STORED_LEVELS];
         let mut next = 0u64;
-        for (slot, section) in levels.iter_mut().zip(dag.levels()) {
+        for (slot, section) in levels.iter_mut().zip(dag_levels) {
             let words = (section.bytes.len() as u64).div_ceil(4);
-            let units = if section.is_leaf {
-                section.bytes.len() as u64 / 8
-            } else {
-                section.bytes.len() as u64 / 4
-            };
+            let starts_at = next + words;
             *slot = [
                 u32::try_from(next).map_err(|_| too_large(next))?,
-                u32::from(section.pointer_width),
-                u32::try_from(units).unwrap_or(u32::MAX),
-                0,
+                section.widths,
+                u32::try_from(section.units).unwrap_or(u32::MAX),
+                match section.starts {
+                    Some(_) => u32::try_from(starts_at).map_err(|_| too_large(starts_at))?,
+                    None => 0,
+                },
             ];
-            next += words;
+            next = starts_at + section.starts.map_or(0, |s| s.len() as u64);
         }
         let sat_base = next;
         let mut table: Vec<[u32; 3]> = saturated
@@ -164,17 +263,88 @@ fn count(
     Ok(total)
 }
 
-/// Writes the words of `dag` and the saturated table into `pages`.
+/// Voxel counts of the records of a 2.0 DAG whose stored count is
+/// saturated, as `(level, word of the record's first byte, count)`, reached
+/// from the root (reflections do not change a count, spec §23.5). A record
+/// is at least 5 bytes long, so no two start in one word.
+pub(crate) fn saturated_counts_v2(
+    levels: &[LevelView<'_>],
+    attribute_kind: AttributeKind,
+) -> Result<Vec<(u8, u32, u64)>, GpuError> {
+    if attribute_kind != AttributeKind::VoxelCount || levels.len() < 2 || levels[0].item_count == 0
+    {
+        return Ok(Vec::new());
+    }
+    let mut memo = FxHashMap::default();
+    count_v2(levels, 0, 0, &mut memo).map_err(GpuError::Malformed)?;
+    let mut out: Vec<(u8, u32, u64)> = memo
+        .into_iter()
+        .map(|((l, offset), c)| (l, (offset >> 2) as u32, c))
+        .collect();
+    out.sort_unstable();
+    Ok(out)
+}
+
+fn count_v2(
+    levels: &[LevelView<'_>],
+    level: u8,
+    offset: u64,
+    memo: &mut FxHashMap<(u8, u64), u64>,
+) -> Result<u64, FormatError> {
+    let l = usize::from(level);
+    let view = &levels[l];
+    if view.is_leaf {
+        let at = usize::try_from(offset.saturating_mul(8)).unwrap_or(usize::MAX);
+        let bytes = view
+            .bytes
+            .get(at..at.saturating_add(8))
+            .ok_or_else(|| out_of_range(offset))?;
+        let bits = u64::from_le_bytes(bytes.try_into().expect("8 bytes"));
+        return Ok(u64::from(bits.count_ones()));
+    }
+    let node = dagfmt::v2::decode_node(view.bytes, offset, view.widths)?;
+    if node.attribute() != COUNT_SATURATED {
+        return Ok(u64::from(node.attribute()));
+    }
+    if let Some(&n) = memo.get(&(level, offset)) {
+        return Ok(n);
+    }
+    let below = levels
+        .get(l + 1)
+        .filter(|v| !v.is_leaf)
+        .map(|v| (v.bytes, v.widths));
+    let mut total = 0u64;
+    for child in node.children.iter().flatten() {
+        let (target, _) = dagfmt::v2::child_address(*child, below)?;
+        total = total.saturating_add(count_v2(levels, level + 1, target, memo)?);
+    }
+    memo.insert((level, offset), total);
+    Ok(total)
+}
+
+fn out_of_range(leaf: u64) -> FormatError {
+    FormatError::new(
+        dagfmt::ErrorCode::ReferenceOutOfRange2,
+        0,
+        format!("a 2.0 reference names leaf {leaf}, past the leaf level"),
+    )
+}
+
+/// Writes the words of the levels and the saturated table into `pages`.
 pub(crate) fn upload(
     device: &wgpu::Device,
     queue: &wgpu::Queue,
     placement: &Placement,
-    dag: &Dag<'_>,
+    levels: &[UploadLevel<'_>],
     pages: &[wgpu::Buffer],
 ) -> Result<(), GpuError> {
     let mut writer = PageWriter::new(device, queue, placement.page_words, pages);
-    for (section, slot) in dag.levels().iter().zip(&placement.levels) {
+    for (section, slot) in levels.iter().zip(&placement.levels) {
         writer.write(u64::from(slot[0]), section.bytes)?;
+        if let Some(starts) = section.starts {
+            let bytes: Vec<u8> = starts.iter().flat_map(|w| w.to_le_bytes()).collect();
+            writer.write(u64::from(slot[3]), &bytes)?;
+        }
     }
     let table: Vec<u8> = placement
         .saturated

@@ -530,7 +530,7 @@ impl<'a> Tracer<'a> {
             saturated: FxHashMap::default(),
             id: NEXT_TRACER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             compute_index: true,
-            packets: dag_bytes <= PACKET_MAX_DAG_BYTES && !v2,
+            packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
             small: dag_bytes <= SMALL_DAG_BYTES,
             gather_loads: Gathers::Auto.loads(),
             wide_lanes: Lanes::Auto.wide(),
@@ -1505,6 +1505,7 @@ impl<'a> Tracer<'a> {
         &self,
         p: &Prepared,
         leaf: u32,
+        reflection: u8,
         pos: Vec3A,
         child: usize,
         planes: (Vec3A, Vec3A, Vec3A),
@@ -1512,7 +1513,8 @@ impl<'a> Tracer<'a> {
         let bits = self.levels[usize::from(self.leaf_level) & LEVEL_INDEX]
             .leaf(self.leaf_level, leaf)
             .map_err(|_| ())?;
-        let neg = p.neg;
+        // As in `brick`: a leaf reached with R is traced in octant `neg ^ R`.
+        let neg = (p.neg ^ usize::from(reflection)) & 7;
         let upper = CHILD_STEPS[child & 7].cmpgt(Vec3A::ZERO);
         let (t_lo, t_mid, t_hi) = planes;
         let t0 = Vec3A::select(upper, t_mid, t_lo);

@@ -439,7 +439,7 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
     let v1 = Tracer::new(&dag)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
-    let v2 = Tracer::from_v2_levels(dag2.header(), dag2.levels(), dag2.color_table())
+    let v2 = Tracer::from_v2(&dag2)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
     let header = dag.header();

@@ -241,6 +241,16 @@ struct Coded<'a> {
     next: Option<(&'a [u8], Coding)>,
 }
 
+/// `section` and the bytes of `file` after it, where `section` is a part of
+/// `file`; else `section` alone.
+fn readable_in<'a>(file: &'a [u8], section: &'a [u8]) -> &'a [u8] {
+    let start = (section.as_ptr() as usize).wrapping_sub(file.as_ptr() as usize);
+    match file.get(start..) {
+        Some(rest) if rest.as_ptr() == section.as_ptr() && rest.len() >= section.len() => rest,
+        _ => section,
+    }
+}
+
 impl<'a> Level<'a> {
     /// The level `section` of the 1.0 file whose bytes are `file`.
     pub(crate) fn new(file: &'a [u8], section: &dagfmt::LevelSection<'a>) -> Self {
@@ -267,12 +277,15 @@ impl<'a> Level<'a> {
     }
 
     /// Level `this` of a 2.0 DAG (spec §23), whose child level is `next`
-    /// (`None` for the leaf level). Fails when a node level's widths are not
-    /// a valid coding or its items cannot all be addressed by the tracer's
-    /// 32-bit addresses.
+    /// (`None` for the leaf level), in the file `file` where the caller has
+    /// it (`readable`: the vector lanes may then gather the words of the
+    /// records at the section's end from the bytes after it). Fails when a
+    /// node level's widths are not a valid coding or its items cannot all be
+    /// addressed by the tracer's 32-bit addresses.
     pub(crate) fn new_v2(
         this: &LevelView<'a>,
         next: Option<&LevelView<'a>>,
+        file: Option<&'a [u8]>,
     ) -> Result<Self, dagfmt::FormatError> {
         let coding = |v: &LevelView<'a>| -> Result<Coding, dagfmt::FormatError> {
             if v.is_leaf || v.bytes.is_empty() {
@@ -313,7 +326,7 @@ impl<'a> Level<'a> {
         };
         Ok(Level {
             bytes: this.bytes,
-            readable: this.bytes,
+            readable: file.map_or(this.bytes, |f| readable_in(f, this.bytes)),
             file_offset: 0,
             width: 0,
             pointer_mask: 0,
@@ -1067,6 +1080,28 @@ mod tests {
         assert_eq!(sub_brick_mask(u64::MAX), 0xff);
     }
 
+    /// The 2.0 encoding of `count` random voxels of a depth-`depth` volume
+    /// and of their mirror images along `axis`: shared, reflected subtrees.
+    fn mirrored_v2(rng: &mut Rng, depth: u32, count: usize, axis: usize) -> dagfmt::v2::Encoded {
+        let side = 1u32 << depth;
+        let mut voxels: Vec<[u32; 3]> = (0..count)
+            .map(|_| [0; 3].map(|_| (rng.next() % u64::from(side)) as u32))
+            .collect();
+        let mirrored: Vec<[u32; 3]> = voxels
+            .iter()
+            .map(|&v| {
+                let mut m = v;
+                m[axis] = side - 1 - v[axis];
+                m
+            })
+            .collect();
+        voxels.extend(mirrored);
+        let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
+            .expect("valid voxels")
+            .to_bytes();
+        dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap()
+    }
+
     /// Every reference of the 2.0 encoding of random DAGs read through
     /// [`Level::child`] and [`Level::reference`] as dagfmt's decoder reads it
     /// (`decode_node`, `child_address`), sequential children included.
@@ -1075,24 +1110,10 @@ mod tests {
         let mut rng = Rng(0x2e2);
         let (mut sequential, mut reflected) = (0, 0);
         for round in 0..6 {
-            let depth = 4 + round % 3;
-            let side = 1u64 << depth;
-            let mut voxels: Vec<[u32; 3]> = (0..200 << round)
-                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
-                .collect();
-            // Mirror images in x: shared, reflected subtrees.
-            let mirrored: Vec<[u32; 3]> = voxels
-                .iter()
-                .map(|&[x, y, z]| [side as u32 - 1 - x, y, z])
-                .collect();
-            voxels.extend(mirrored);
-            let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
-                .expect("valid voxels")
-                .to_bytes();
-            let enc = dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap();
+            let enc = mirrored_v2(&mut rng, 4 + round % 3, 200 << round, 0);
             let views = enc.views();
             for (l, view) in views.iter().enumerate().filter(|(_, v)| !v.is_leaf) {
-                let level = Level::new_v2(view, views.get(l + 1)).unwrap();
+                let level = Level::new_v2(view, views.get(l + 1), None).unwrap();
                 let next = views[l + 1];
                 let child_level = (!next.is_leaf).then_some((next.bytes, next.widths));
                 let mut at = 0u64;
@@ -1156,20 +1177,7 @@ mod tests {
         let mut rng = Rng(0x7ec2);
         let (mut shared, mut sequential) = (0, 0);
         for round in 0..6 {
-            let depth = 5 + round % 3;
-            let side = 1u64 << depth;
-            let mut voxels: Vec<[u32; 3]> = (0..300 << round)
-                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
-                .collect();
-            let mirrored: Vec<[u32; 3]> = voxels
-                .iter()
-                .map(|&[x, y, z]| [x, side as u32 - 1 - y, z])
-                .collect();
-            voxels.extend(mirrored);
-            let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
-                .expect("valid voxels")
-                .to_bytes();
-            let enc = dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap();
+            let enc = mirrored_v2(&mut rng, 5 + round % 3, 300 << round, 1);
             for view in enc.views().iter().filter(|v| !v.is_leaf) {
                 let w = view.widths.map(|w| i32::from(w));
                 let mut at = 0u64;

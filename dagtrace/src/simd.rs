@@ -161,15 +161,19 @@ struct Sections {
     /// Per level: the node addresses below it have a whole header in the
     /// section (1.0: `len / 4` words; 2.0: `len - 3` bytes).
     nodes: [i32; LEVEL_TABLE],
-    /// 2.0, per level: the byte offsets below it have eight bytes in the
-    /// section (`len - 7`, or 0): the lanes read the 32 bits after a header,
-    /// and a reference's 64 bits, there, the scalar `Level::child_or_fault`
-    /// the others.
+    /// 2.0, per level: the byte offsets below it have eight readable bytes
+    /// (in the section or the file after it, `Level::readable`): the lanes
+    /// gather the 32 bits after a header, and a reference's 64 bits, there,
+    /// and check that what they decode lies in the section (`len`); the
+    /// scalar `Level::child_or_fault` reads the others.
     v2_end: [i32; LEVEL_TABLE],
     /// 2.0, per level: the widths w_1, w_2, w_3 of its references.
     v2_width: [[i32; LEVEL_TABLE]; 3],
     /// The leaf level.
     leaf_level: i32,
+    /// An offset from `base` with eight readable bytes (the first leaf):
+    /// where the lanes out of a [`gather_pair`] with `LOADS` read.
+    spare: i32,
 }
 
 impl Sections {
@@ -192,6 +196,7 @@ impl Sections {
             v2_end: [0; LEVEL_TABLE],
             v2_width: [[0; LEVEL_TABLE]; 3],
             leaf_level: i32::from(tracer.leaf_level),
+            spare: 0,
         };
         for (l, level) in used.iter().enumerate() {
             if level.bytes.is_empty() {
@@ -215,10 +220,19 @@ impl Sections {
             } else {
                 len >> 2
             };
-            s.v2_end[l] = (len - 7).max(0);
+            // (At most 64 bytes past the section: the room checked above.)
+            let readable = level.readable.len().min(level.bytes.len() + 64) as i32;
+            s.v2_end[l] = (readable - 7).max(0);
             for (j, w) in level.v2_widths().into_iter().enumerate() {
                 s.v2_width[j][l] = w;
             }
+        }
+        if tracer.v2 {
+            let leaves = &used[used.len() - 1];
+            if leaves.bytes.len() < 8 {
+                return None;
+            }
+            s.spare = s.offset[used.len() - 1];
         }
         Some(s)
     }
@@ -1317,6 +1331,7 @@ unsafe fn v2_reference<const LOADS: bool>(
     let one = _mm256_set1_epi32(1);
     let four = _mm256_set1_epi32(HEADER_BYTES as i32);
     let ends = level_table(&s.v2_end);
+    let lens = level_table(&s.len);
     let offsets = level_table(&s.offset);
     let widths = [
         level_table(&s.v2_width[0]),
@@ -1350,15 +1365,29 @@ unsafe fn v2_reference<const LOADS: bool>(
     // The 64 bits holding the reference, from its first byte.
     let byte = _mm256_add_epi32(word, _mm256_add_epi32(four, _mm256_srli_epi32::<3>(c.bit)));
     let inside = lt_u32(byte, end);
+    // What the scalar decoding reads lies in the section (else it faults):
+    // the codes (2k + 2 bits) and the reference.
+    let len = by_level(&lens, level);
+    let codes_end = _mm256_add_epi32(
+        _mm256_add_epi32(word, four),
+        _mm256_srli_epi32::<3>(_mm256_add_epi32(
+            _mm256_slli_epi32::<1>(Avx2::popcount(mask)),
+            _mm256_set1_epi32(9),
+        )),
+    );
+    let reference_end = _mm256_add_epi32(
+        _mm256_add_epi32(word, four),
+        _mm256_srli_epi32::<3>(_mm256_add_epi32(
+            _mm256_add_epi32(c.bit, c.width),
+            _mm256_set1_epi32(7),
+        )),
+    );
+    let past = _mm256_or_si256(lt_u32(len, codes_end), lt_u32(len, reference_end));
+    let inside = _mm256_andnot_si256(past, inside);
     slow = _mm256_or_si256(slow, _mm256_andnot_si256(inside, live));
     live = _mm256_and_si256(inside, live);
-    let at = _mm256_add_epi32(offset, byte);
-    let (lo, hi) = unsafe {
-        (
-            gather::<LOADS>(zero, base, at, live),
-            gather::<LOADS>(zero, base, _mm256_add_epi32(at, four), live),
-        )
-    };
+    let (lo, hi) =
+        unsafe { gather_pair::<LOADS>(base, s.spare, _mm256_add_epi32(offset, byte), live) };
     let (value, high) = Avx2::v2_value(
         lo,
         hi,
@@ -1397,6 +1426,7 @@ unsafe fn v2_reference<const LOADS: bool>(
     if _mm256_movemask_ps(_mm256_castsi256_ps(todo)) != 0 {
         let next_offset = by_level(&offsets, child_level);
         let next_end = by_level(&ends, child_level);
+        let next_len = by_level(&lens, child_level);
         let next_w = [
             by_level(&widths[0], child_level),
             by_level(&widths[1], child_level),
@@ -1411,13 +1441,22 @@ unsafe fn v2_reference<const LOADS: bool>(
                 break;
             }
             let at = _mm256_add_epi32(next_offset, target);
-            let (header, after) = unsafe {
-                (
-                    gather::<LOADS>(zero, base, at, todo),
-                    gather::<LOADS>(zero, base, _mm256_add_epi32(at, four), todo),
-                )
-            };
-            let (codes, count) = Avx2::v2_codes(Avx2::child_mask(header), after);
+            let (header, after) = unsafe { gather_pair::<LOADS>(base, s.spare, at, todo) };
+            let sibling_mask = Avx2::child_mask(header);
+            // The header, and the codes (2k + 2 bits, none without
+            // children), lie in the section, as the scalar decoding needs.
+            let two_k = _mm256_slli_epi32::<1>(Avx2::popcount(sibling_mask));
+            let codes_bytes = _mm256_andnot_si256(
+                _mm256_cmpeq_epi32(two_k, zero),
+                _mm256_srli_epi32::<3>(_mm256_add_epi32(two_k, _mm256_set1_epi32(9))),
+            );
+            let past = lt_u32(
+                next_len,
+                _mm256_add_epi32(_mm256_add_epi32(target, four), codes_bytes),
+            );
+            slow = _mm256_or_si256(slow, _mm256_and_si256(past, todo));
+            todo = _mm256_andnot_si256(past, todo);
+            let (codes, count) = Avx2::v2_codes(sibling_mask, after);
             let size = Avx2::v2_size(codes, count, next_w);
             target = blend(target, _mm256_add_epi32(target, size), todo);
             round = _mm256_add_epi32(round, one);
@@ -1500,19 +1539,7 @@ unsafe fn gather<const LOADS: bool>(
         // SAFETY: the caller keeps the reads of the lanes in `lanes` readable.
         return unsafe { _mm256_mask_i32gather_epi32::<1>(src, base, offsets, lanes) };
     }
-    // The offsets two to a 64-bit word, out of the vector by register moves
-    // (a store and eight loads of the offsets took longer).
-    let at = _mm256_and_si256(offsets, lanes);
-    let (lo, hi) = (
-        _mm256_castsi256_si128(at),
-        _mm256_extracti128_si256::<1>(at),
-    );
-    let pairs = [
-        _mm_cvtsi128_si64(lo) as u64,
-        _mm_extract_epi64::<1>(lo) as u64,
-        _mm_cvtsi128_si64(hi) as u64,
-        _mm_extract_epi64::<1>(hi) as u64,
-    ];
+    let pairs = offset_pairs(_mm256_and_si256(offsets, lanes));
     let base: *const u8 = base.cast();
     // SAFETY: the caller keeps these four bytes readable: those of a lane in
     // `lanes`, or `base` itself for the others (their offsets are masked to 0).
@@ -1532,6 +1559,88 @@ unsafe fn gather<const LOADS: bool>(
         word(pairs[3] >> 32),
     );
     blend(src, words, lanes)
+}
+
+/// Eight lanes' offsets two to a 64-bit word (lane `2i` in the low half of
+/// word `i`), out of the vector by register moves (a store and eight loads
+/// of the offsets took longer): for the scalar loads of [`gather`] and
+/// [`gather_pair`].
+#[inline]
+#[target_feature(enable = "avx2")]
+fn offset_pairs(at: __m256i) -> [u64; 4] {
+    let (lo, hi) = (
+        _mm256_castsi256_si128(at),
+        _mm256_extracti128_si256::<1>(at),
+    );
+    [
+        _mm_cvtsi128_si64(lo) as u64,
+        _mm_extract_epi64::<1>(lo) as u64,
+        _mm_cvtsi128_si64(hi) as u64,
+        _mm_extract_epi64::<1>(hi) as u64,
+    ]
+}
+
+/// The 64 bits at byte offsets `offsets` from `base` in the lanes of
+/// `lanes` as their low and high 32 bits (0 in the other lanes): two
+/// [`gather`]s, or, where `LOADS`, eight 64-bit scalar loads put together.
+///
+/// # Safety
+///
+/// The processor must have AVX2. The eight bytes at `base + offset` must be
+/// readable for the offsets of the lanes in `lanes`, and, where `LOADS`, the
+/// eight bytes at `base + spare` (the other lanes load those).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn gather_pair<const LOADS: bool>(
+    base: *const i32,
+    spare: i32,
+    offsets: __m256i,
+    lanes: __m256i,
+) -> (__m256i, __m256i) {
+    let zero = _mm256_setzero_si256();
+    if !LOADS {
+        // SAFETY: the caller keeps the eight bytes of the lanes readable.
+        return unsafe {
+            (
+                gather::<false>(zero, base, offsets, lanes),
+                gather::<false>(
+                    zero,
+                    base,
+                    _mm256_add_epi32(offsets, _mm256_set1_epi32(4)),
+                    lanes,
+                ),
+            )
+        };
+    }
+    let pairs = offset_pairs(blend(_mm256_set1_epi32(spare), offsets, lanes));
+    let base: *const u8 = base.cast();
+    // SAFETY: the caller keeps these eight bytes readable: those of a lane in
+    // `lanes`, or `base + spare` for the others.
+    let word = |offset: u64| unsafe {
+        base.add(offset as u32 as usize)
+            .cast::<i64>()
+            .read_unaligned()
+    };
+    let first = _mm256_setr_epi64x(
+        word(pairs[0]),
+        word(pairs[0] >> 32),
+        word(pairs[1]),
+        word(pairs[1] >> 32),
+    );
+    let second = _mm256_setr_epi64x(
+        word(pairs[2]),
+        word(pairs[2] >> 32),
+        word(pairs[3]),
+        word(pairs[3] >> 32),
+    );
+    // The even (low) and odd (high) 32-bit halves, then back in lane order
+    // (the shuffle works within 128-bit halves).
+    let (a, b) = (_mm256_castsi256_ps(first), _mm256_castsi256_ps(second));
+    let low = _mm256_castps_si256(_mm256_shuffle_ps::<0b10_00_10_00>(a, b));
+    let high = _mm256_castps_si256(_mm256_shuffle_ps::<0b11_01_11_01>(a, b));
+    let low = _mm256_permute4x64_epi64::<0b11_01_10_00>(low);
+    let high = _mm256_permute4x64_epi64::<0b11_01_10_00>(high);
+    (_mm256_and_si256(low, lanes), _mm256_and_si256(high, lanes))
 }
 
 /// `a < b` as unsigned 32-bit integers.

@@ -465,12 +465,34 @@ impl<'a> Tracer<'a> {
     /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
     /// offsets that errors of a malformed DAG report are inside the level
     /// section named (the tracer does not know where the sections lie in a
-    /// file). Batches are traced by the scalar steps (the vector lanes and
-    /// packets read 1.0 records only): see dagtrace/BENCHMARKS.md.
+    /// file). [`Tracer::from_v2`] makes the tracer of a 2.0 file.
     pub fn from_v2_levels(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
+    ) -> Result<Self, TraceError> {
+        Self::from_v2_parts(header, levels, colors, None)
+    }
+
+    /// The tracer of the 2.0 file `dag` ([`Tracer::from_v2_levels`] of its
+    /// levels, header and colours; knowing the whole file, the vector lanes
+    /// gather the records at the end of a level section with the bytes that
+    /// follow it, rather than read them one by one).
+    pub fn from_v2(dag: &dagfmt::Dag2<'a>) -> Result<Self, TraceError> {
+        Self::from_v2_parts(
+            dag.header(),
+            dag.levels(),
+            dag.color_table(),
+            Some(dag.bytes()),
+        )
+    }
+
+    /// [`Tracer::from_v2_levels`] of levels inside `file`, where known.
+    fn from_v2_parts(
+        header: &dagfmt::Header,
+        levels: &[dagfmt::v2::LevelView<'a>],
+        colors: Option<ColorTable<'a>>,
+        file: Option<&'a [u8]>,
     ) -> Result<Self, TraceError> {
         let malformed = |message: String| {
             TraceError::Malformed(FormatError::new(ErrorCode::BadLevelSections, 0, message))
@@ -491,7 +513,7 @@ impl<'a> Tracer<'a> {
         }
         let mut slots = [Level::default(); LEVEL_SLOTS];
         for (i, (slot, view)) in slots.iter_mut().zip(levels).enumerate() {
-            *slot = Level::new_v2(view, levels.get(i + 1))
+            *slot = Level::new_v2(view, levels.get(i + 1), file)
                 .map_err(|e| TraceError::Malformed(e.at_level(i as u8)))?;
         }
         let empty = levels.last().is_none_or(|l| l.bytes.is_empty());

@@ -35,12 +35,12 @@
 //! 2.0 file of the same voxels (`--v2-file`, one 1.0 file) or makes it in
 //! memory (`dagfmt::v2file::upgrade`, what `dagtool upgrade` writes; its time
 //! is printed), and times the batch API of the
-//! 2.0 tracer ([`Tracer::from_v2_levels`]) against the 1.0 tracer's, both
+//! 2.0 tracer ([`Tracer::from_v2`]) against the 1.0 tracer's, both
 //! on one core ([`Tracer::trace_sequential_into`]) and on all cores
 //! ([`Tracer::trace_batch_into`]), runs alternating as above; it prints the
 //! medians and the median of the per-run ratios 2.0 / 1.0 of the rates, and
 //! checks that both give the same answers (up to the choice among exactly
-//! tied cells that the 1.0 packets may make, counted).
+//! tied cells that packets may make, counted).
 //!
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
@@ -470,8 +470,7 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
             let all = alternate(args.runs, n, &mut timed);
             (one, all)
         };
-        // The 1.0 packets may pick another of exactly tied cells; 2.0 traces
-        // ray by ray (trace()'s answers).
+        // Packets may pick another of exactly tied cells than `trace()`.
         let differ = hits[0].iter().zip(&hits[1]).filter(|(a, b)| a != b).count();
         if differ * 1000 > n {
             return Err(format!(

@@ -1179,7 +1179,7 @@ mod tests {
         for round in 0..6 {
             let enc = mirrored_v2(&mut rng, 5 + round % 3, 300 << round, 1);
             for view in enc.views().iter().filter(|v| !v.is_leaf) {
-                let w = view.widths.map(|w| i32::from(w));
+                let w = view.widths.map(i32::from);
                 let mut at = 0u64;
                 while at < view.bytes.len() as u64 {
                     let node = dagfmt::v2::decode_node(view.bytes, at, view.widths).unwrap();
@@ -1187,7 +1187,7 @@ mod tests {
                     padded.resize(padded.len().max(64), 0);
                     let word = |i: usize| u32::from_le_bytes(padded[i..i + 4].try_into().unwrap());
                     let mask = u32::from(node.child_mask());
-                    // SAFETY (here and below): AVX2 was found above.
+                    // SAFETY: AVX2 was found above.
                     let (codes, count, size) = unsafe {
                         let ws = w.map(|w| _mm256_set1_epi32(w));
                         let (codes, count) = lanes::Avx2::v2_codes(
@@ -1202,6 +1202,7 @@ mod tests {
                         let Some(child) = node.children[slot] else {
                             continue;
                         };
+                        // SAFETY: AVX2 was found above.
                         let c = unsafe {
                             lanes::Avx2::v2_child(
                                 codes,
@@ -1213,6 +1214,7 @@ mod tests {
                         };
                         let bit = lane(c.bit)[0] as usize;
                         let byte = 4 + bit / 8;
+                        // SAFETY: AVX2 was found above.
                         let (value, high) = unsafe {
                             lanes::Avx2::v2_value(
                                 _mm256_set1_epi32(word(byte) as i32),

@@ -1349,9 +1349,10 @@ unsafe fn v2_reference<const LOADS: bool>(
     let inside = lt_u32(word, end);
     let mut slow = _mm256_andnot_si256(inside, lanes);
     let mut live = _mm256_and_si256(inside, lanes);
-    // SAFETY (all gathers): the lanes in `live` read four bytes below
-    // `end` (eight bytes inside the section) of a level that `Sections`
-    // addresses from `base`; with `LOADS` the others read `base` itself.
+    // SAFETY: the lanes in `live` read four of the eight readable bytes at
+    // an offset below `end` (`Sections::v2_end`) of a level that `Sections`
+    // addresses from `base`; with `LOADS` the others read `base` itself
+    // (the start of a non-empty section).
     let after = unsafe {
         gather::<LOADS>(
             zero,
@@ -1386,6 +1387,8 @@ unsafe fn v2_reference<const LOADS: bool>(
     let inside = _mm256_andnot_si256(past, inside);
     slow = _mm256_or_si256(slow, _mm256_andnot_si256(inside, live));
     live = _mm256_and_si256(inside, live);
+    // SAFETY: the lanes in `live` read the eight readable bytes at `byte`,
+    // below `end`; with `LOADS` the others those at `s.spare` (a leaf).
     let (lo, hi) =
         unsafe { gather_pair::<LOADS>(base, s.spare, _mm256_add_epi32(offset, byte), live) };
     let (value, high) = Avx2::v2_value(
@@ -1441,6 +1444,9 @@ unsafe fn v2_reference<const LOADS: bool>(
                 break;
             }
             let at = _mm256_add_epi32(next_offset, target);
+            // SAFETY: the lanes in `todo` read the eight readable bytes at
+            // `target`, below `next_end`; with `LOADS` the others those at
+            // `s.spare` (a leaf).
             let (header, after) = unsafe { gather_pair::<LOADS>(base, s.spare, at, todo) };
             let sibling_mask = Avx2::child_mask(header);
             // The header, and the codes (2k + 2 bits, none without

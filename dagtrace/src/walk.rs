@@ -466,7 +466,10 @@ impl<'a> Tracer<'a> {
     /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
     /// offsets that errors of a malformed DAG report are inside the level
     /// section named (the tracer does not know where the sections lie in a
-    /// file). [`Tracer::from_v2`] makes the tracer of a 2.0 file.
+    /// file). [`Tracer::from_v2`] makes the tracer of a 2.0 file. (The
+    /// vector lanes address all levels with 32-bit offsets from one base:
+    /// levels in separate allocations further apart than that leave the
+    /// batches to the scalar steps, with the same answers.)
     pub fn from_v2_levels(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],

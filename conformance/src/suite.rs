@@ -209,9 +209,7 @@ impl TraceBackend for CpuTracer {
         let dag = dagfmt::AnyDag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
         let tracer = match &dag {
             dagfmt::AnyDag::V1(d) => dagtrace::Tracer::new(d),
-            dagfmt::AnyDag::V2(d) => {
-                dagtrace::Tracer::from_v2_levels(d.header(), d.levels(), d.color_table())
-            }
+            dagfmt::AnyDag::V2(d) => dagtrace::Tracer::from_v2(d),
         }
         .map_err(|e| format!("the tracer refuses the file: {e}"))?;
         tracer

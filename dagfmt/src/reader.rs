@@ -307,6 +307,7 @@ pub struct Dag<'a> {
     packed: Option<PackedColors<'a>>,
 }
 
+#[inline]
 pub(crate) fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
     bytes
         .get(at..at + 4)

@@ -31,15 +31,16 @@
 //! The voxel tracer runs without the attribute index (closest hit: t, cell,
 //! face), like obvhs's closest hit (t, triangle); `--index` adds the index.
 //!
-//! `--format2` instead compares format 2.0 with 1.0 (issue 42): it encodes
-//! each file's DAG as 2.0 in memory (`dagfmt::v2::encode`, the level sections
-//! a 2.0 file holds; its time is printed), and times the batch API of the
-//! 2.0 tracer ([`Tracer::from_v2_levels`]) against the 1.0 tracer's, both
+//! `--format2` instead compares format 2.0 with 1.0 (issue 42): it reads the
+//! 2.0 file of the same voxels (`--v2-file`, one 1.0 file) or makes it in
+//! memory (`dagfmt::v2file::upgrade`, what `dagtool upgrade` writes; its time
+//! is printed), and times the batch API of the
+//! 2.0 tracer ([`Tracer::from_v2`]) against the 1.0 tracer's, both
 //! on one core ([`Tracer::trace_sequential_into`]) and on all cores
 //! ([`Tracer::trace_batch_into`]), runs alternating as above; it prints the
 //! medians and the median of the per-run ratios 2.0 / 1.0 of the rates, and
 //! checks that both give the same answers (up to the choice among exactly
-//! tied cells that the 1.0 packets may make, counted).
+//! tied cells that packets may make, counted).
 //!
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
@@ -108,6 +109,10 @@ struct Args {
     /// voxels with the 1.0 file's (no mesh, no `trace()` figures).
     #[arg(long)]
     format2: bool,
+    /// With `--format2` and one 1.0 file: the 2.0 file of the same voxels
+    /// (`dagtool convert --format-version 2`), read instead of encoding it.
+    #[arg(long)]
+    v2_file: Option<PathBuf>,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -412,24 +417,39 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
     let file = MappedFile::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
     let start = Instant::now();
-    let encoded = dagfmt::v2::encode(&dag).map_err(|e| format!("{}: {e}", path.display()))?;
+    // The whole 2.0 file, as a tracer reads it: its sections in one buffer.
+    let (mapped, owned);
+    let (v2_bytes, made): (&[u8], &str) = match &args.v2_file {
+        Some(p) => {
+            mapped = MappedFile::open(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            (mapped.bytes(), "read")
+        }
+        None => {
+            owned =
+                dagfmt::v2file::upgrade(&dag).map_err(|e| format!("{}: {e}", path.display()))?;
+            (&owned, "encoded")
+        }
+    };
     let encode_s = start.elapsed().as_secs_f64();
-    let views = encoded.views();
+    let dag2 = dagfmt::Dag2::open(v2_bytes).map_err(|e| format!("2.0 file: {e}"))?;
+    if dag2.header().voxel_count != dag.header().voxel_count {
+        return Err("the 2.0 file holds other voxels than the 1.0 file".to_string());
+    }
+    let v2_bytes: usize = dag2.levels().iter().map(|l| l.bytes.len()).sum();
     let v1 = Tracer::new(&dag)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
-    let v2 = Tracer::from_v2_levels(dag.header(), &views, dag.color_table())
+    let v2 = Tracer::from_v2(&dag2)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
     let header = dag.header();
     let v1_bytes: usize = dag.levels().iter().map(|l| l.bytes.len()).sum();
     println!(
-        "{}: depth {}, {} voxels; level bytes 1.0 {v1_bytes}, 2.0 {} ({:.3}x; encoded in {encode_s:.1} s)",
+        "{}: depth {}, {} voxels; level bytes 1.0 {v1_bytes}, 2.0 {v2_bytes} ({:.3}x; {made} in {encode_s:.1} s)",
         path.display(),
         header.depth,
         header.voxel_count,
-        encoded.level_bytes(),
-        encoded.level_bytes() as f64 / v1_bytes as f64
+        v2_bytes as f64 / v1_bytes as f64
     );
     for (name, rays) in ray_sets(args, &dag)? {
         let n = rays.len();
@@ -450,8 +470,7 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
             let all = alternate(args.runs, n, &mut timed);
             (one, all)
         };
-        // The 1.0 packets may pick another of exactly tied cells; 2.0 traces
-        // ray by ray (trace()'s answers).
+        // Packets may pick another of exactly tied cells than `trace()`.
         let differ = hits[0].iter().zip(&hits[1]).filter(|(a, b)| a != b).count();
         if differ * 1000 > n {
             return Err(format!(

@@ -372,7 +372,7 @@ impl<'a> Opened<'a> {
     fn tracer(&self, path: &Path) -> Result<Tracer<'a>, Failure> {
         match self {
             Opened::V1(d) => Tracer::new(d),
-            Opened::V2(d) => Tracer::from_v2_levels(d.header(), d.levels(), d.color_table()),
+            Opened::V2(d) => Tracer::from_v2(d),
         }
         .map_err(|e| Failure(format!("{}: {e}", path.display())))
     }

@@ -71,11 +71,21 @@
 //!    take the logical child `c` of the cell's path at physical slot `c ^
 //!    R`, the earlier siblings from [`SIBLINGS_BEFORE`], and the leaf's rank
 //!    from [`voxels_below`] of [`logical_leaf`].
-//! 3. The vector lanes (`simd`) and packets (`packet`) decode 1.0 records
-//!    only: a 2.0 tracer hands its whole batch to the scalar steps
-//!    (`Tracer::trace_lanes_scalar`, eight rays in flight), and has packets
-//!    off. The answers are those of every other path; see
-//!    dagtrace/BENCHMARKS.md for what it costs.
+//! 3. The eight vector lanes (`simd::step` with `V2`) keep each lane's R
+//!    (`Group::reflection`, and `target_reflection` for the node it goes
+//!    to), store it in the frame's last byte and trace in octant `neg ^ R`
+//!    as the walk does; they decode a 2.0 reference with [`lanes::Avx2`]'s
+//!    forms of [`Coding`]'s steps (`v2_codes`, `v2_child`, `v2_value`,
+//!    `v2_size`: the 32 bits after a header gathered for the codes, the 64
+//!    bits of the reference gathered, the sizes of a sequential child's
+//!    siblings added one sibling a round), and leave to
+//!    [`Level::child_or_fault`] the references whose words lie within
+//!    eight bytes of their section's end or whose value passes 32 bits.
+//!    The sixteen lanes decode 1.0 only: a 2.0 tracer takes eight lanes.
+//!    The packets (`packet`) carry R in every frame of the beam walk and of
+//!    the cells' walks (`BeamFrame`, `BeamCell`, `SubtreeFrame`) and in the
+//!    brick test (`Tracer::brick_in_node`), reading references through
+//!    [`Level::child`].
 
 use dagfmt::layout::{CHILD_MASK_BITS, leaf_bit};
 use dagfmt::v2::{Child, Coding, LevelView};
@@ -223,10 +233,22 @@ pub(crate) struct Level<'a> {
 #[derive(Clone, Copy, Debug)]
 struct Coded<'a> {
     coding: Coding,
+    /// The level's widths w_1, w_2, w_3 in bits, for the vector lanes.
+    widths: [u8; 3],
     /// The child level's records, where sequential children of an interior
     /// child level are found by adding their siblings' sizes; `None` when
     /// the child level is the leaf level (sequential leaf `base + j`).
     next: Option<(&'a [u8], Coding)>,
+}
+
+/// `section` and the bytes of `file` after it, where `section` is a part of
+/// `file`; else `section` alone.
+fn readable_in<'a>(file: &'a [u8], section: &'a [u8]) -> &'a [u8] {
+    let start = (section.as_ptr() as usize).wrapping_sub(file.as_ptr() as usize);
+    match file.get(start..) {
+        Some(rest) if rest.as_ptr() == section.as_ptr() && rest.len() >= section.len() => rest,
+        _ => section,
+    }
 }
 
 impl<'a> Level<'a> {
@@ -255,12 +277,15 @@ impl<'a> Level<'a> {
     }
 
     /// Level `this` of a 2.0 DAG (spec §23), whose child level is `next`
-    /// (`None` for the leaf level). Fails when a node level's widths are not
-    /// a valid coding or its items cannot all be addressed by the tracer's
-    /// 32-bit addresses.
+    /// (`None` for the leaf level), in the file `file` where the caller has
+    /// it (`readable`: the vector lanes may then gather the words of the
+    /// records at the section's end from the bytes after it). Fails when a
+    /// node level's widths are not a valid coding or its items cannot all be
+    /// addressed by the tracer's 32-bit addresses.
     pub(crate) fn new_v2(
         this: &LevelView<'a>,
         next: Option<&LevelView<'a>>,
+        file: Option<&'a [u8]>,
     ) -> Result<Self, dagfmt::FormatError> {
         let coding = |v: &LevelView<'a>| -> Result<Coding, dagfmt::FormatError> {
             if v.is_leaf || v.bytes.is_empty() {
@@ -295,18 +320,26 @@ impl<'a> Level<'a> {
             };
             Some(Coded {
                 coding: coding(this)?,
+                widths: this.widths,
                 next,
             })
         };
         Ok(Level {
             bytes: this.bytes,
-            readable: this.bytes,
+            readable: file.map_or(this.bytes, |f| readable_in(f, this.bytes)),
             file_offset: 0,
             width: 0,
             pointer_mask: 0,
             address_shift: 0,
             v2,
         })
+    }
+
+    /// The widths w_1, w_2, w_3 in bits of a 2.0 node level's references
+    /// (spec §23.2): what the vector lanes decode with (`lanes::Avx2`);
+    /// zeros for a 1.0 level and for leaves.
+    pub(crate) fn v2_widths(&self) -> [i32; 3] {
+        self.v2.map_or([0; 3], |c| c.widths.map(i32::from))
     }
 
     /// Whether the level is a 2.0 node level.
@@ -689,6 +722,202 @@ pub(crate) mod lanes {
         }
     }
 
+    /// Bits 0, 2, 4, … of a 2.0 code word: the low bit of each 2-bit code
+    /// (as in `dagfmt::v2`'s decoder).
+    const LOW_BITS: i32 = 0x5_5555;
+
+    /// Format 2.0 (spec §23.2), what [`super::Level`] decodes through
+    /// `dagfmt::v2::Coding`, one record to a lane: the record's codes, the
+    /// bit position and width of a child's reference, a record's size. The
+    /// lanes gather the words (the 32 bits after a header, the 64 bits
+    /// holding a reference) themselves; a lane whose words lie too near the
+    /// end of its section is decoded by [`super::Level::child_or_fault`].
+    /// The three widths of a level are given per lane, `w[j - 1]` for code
+    /// `j`.
+    impl Avx2 {
+        /// Set bits of each lane (the lanes hold values below 2^24).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn popcount(v: __m256i) -> __m256i {
+            let nibbles = _mm256_setr_epi8(
+                0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4, 0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3,
+                2, 3, 3, 4,
+            );
+            let low = _mm256_set1_epi8(0x0f);
+            let lo = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(v, low));
+            let hi = _mm256_shuffle_epi8(nibbles, _mm256_and_si256(_mm256_srli_epi32::<4>(v), low));
+            // Per byte, then the bytes of each lane added up (at most 24).
+            let bytes = _mm256_add_epi8(lo, hi);
+            let sum = _mm256_add_epi8(bytes, _mm256_srli_epi32::<8>(bytes));
+            let sum = _mm256_add_epi8(sum, _mm256_srli_epi32::<16>(sum));
+            _mm256_and_si256(sum, _mm256_set1_epi32(0xff))
+        }
+
+        /// `(1 << bits) - 1` per lane (all ones from 32 bits on).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        fn low_mask(bits: __m256i) -> __m256i {
+            let one = _mm256_set1_epi32(1);
+            _mm256_sub_epi32(_mm256_sllv_epi32(one, bits), one)
+        }
+
+        /// A record's codes (`Coding::codes`) from its child mask and the
+        /// 32 bits that follow its header: the m codes (code i in bits 2i
+        /// and 2i + 1, a base code of 0 read as 1) and m.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn v2_codes(mask: __m256i, after: __m256i) -> (__m256i, __m256i) {
+            let low_bits = _mm256_set1_epi32(LOW_BITS);
+            let k = Self::popcount(mask);
+            let two_k = _mm256_slli_epi32::<1>(k);
+            let k_codes = _mm256_and_si256(after, Self::low_mask(two_k));
+            let shared = Self::popcount(_mm256_and_si256(
+                _mm256_or_si256(k_codes, _mm256_srli_epi32::<1>(k_codes)),
+                low_bits,
+            ));
+            // All ones where a code is 0: the record has a base reference.
+            let has_base = _mm256_cmpgt_epi32(k, shared);
+            let count = _mm256_sub_epi32(k, has_base);
+            let mut codes = _mm256_and_si256(after, Self::low_mask(_mm256_slli_epi32::<1>(count)));
+            let base_zero = _mm256_and_si256(
+                has_base,
+                _mm256_cmpeq_epi32(_mm256_srlv_epi32(codes, two_k), _mm256_setzero_si256()),
+            );
+            codes = _mm256_or_si256(
+                codes,
+                _mm256_and_si256(base_zero, _mm256_sllv_epi32(_mm256_set1_epi32(1), two_k)),
+            );
+            (codes, count)
+        }
+
+        /// The bits of the references of the codes in `codes`
+        /// (`Coding::reference_bits`): `n_1·w_1 + n_2·w_2 + n_3·w_3`.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn v2_reference_bits(codes: __m256i, w: [__m256i; 3]) -> __m256i {
+            let low_bits = _mm256_set1_epi32(LOW_BITS);
+            let low = _mm256_and_si256(codes, low_bits);
+            let high = _mm256_and_si256(_mm256_srli_epi32::<1>(codes), low_bits);
+            let n1 = Self::popcount(_mm256_andnot_si256(high, low));
+            let n2 = Self::popcount(_mm256_andnot_si256(low, high));
+            let n3 = Self::popcount(_mm256_and_si256(low, high));
+            _mm256_add_epi32(
+                _mm256_add_epi32(_mm256_mullo_epi32(n1, w[0]), _mm256_mullo_epi32(n2, w[1])),
+                _mm256_mullo_epi32(n3, w[2]),
+            )
+        }
+
+        /// Bytes of a record with codes `codes` and `count` of them
+        /// (`Coding::size`).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn v2_size(codes: __m256i, count: __m256i, w: [__m256i; 3]) -> __m256i {
+            let bits = _mm256_add_epi32(
+                _mm256_slli_epi32::<1>(count),
+                Self::v2_reference_bits(codes, w),
+            );
+            _mm256_add_epi32(
+                _mm256_set1_epi32(HEADER_BYTES as i32),
+                _mm256_srli_epi32::<3>(_mm256_add_epi32(bits, _mm256_set1_epi32(7))),
+            )
+        }
+
+        /// The width of the references of code `code` (0 for code 0).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        fn v2_width(code: __m256i, w: [__m256i; 3]) -> __m256i {
+            let is = |c: i32| _mm256_cmpeq_epi32(code, _mm256_set1_epi32(c));
+            _mm256_or_si256(
+                _mm256_or_si256(_mm256_and_si256(is(1), w[0]), _mm256_and_si256(is(2), w[1])),
+                _mm256_and_si256(is(3), w[2]),
+            )
+        }
+
+        /// Where the reference of the child of rank `rank` (among the
+        /// record's children, in physical slot order) lies (`Coding::child`):
+        /// its bit offset from the end of the header and its width, all ones
+        /// where the child is sequential (the reference is then the base
+        /// reference), and its index among the sequential children.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn v2_child(
+            codes: __m256i,
+            count: __m256i,
+            mask: __m256i,
+            rank: __m256i,
+            w: [__m256i; 3],
+        ) -> V2Child {
+            let three = _mm256_set1_epi32(3);
+            let two_rank = _mm256_slli_epi32::<1>(rank);
+            let code = _mm256_and_si256(_mm256_srlv_epi32(codes, two_rank), three);
+            let before = _mm256_and_si256(codes, Self::low_mask(two_rank));
+            let sequential = _mm256_cmpeq_epi32(code, _mm256_setzero_si256());
+            let two_k = _mm256_slli_epi32::<1>(Self::popcount(mask));
+            let base_code = _mm256_and_si256(_mm256_srlv_epi32(codes, two_k), three);
+            // Shared: the references of the codes before it; sequential: the
+            // base reference, after those of all the children.
+            let prefix = _mm256_blendv_epi8(
+                before,
+                _mm256_and_si256(codes, Self::low_mask(two_k)),
+                sequential,
+            );
+            let bit = _mm256_add_epi32(
+                _mm256_slli_epi32::<1>(count),
+                Self::v2_reference_bits(prefix, w),
+            );
+            let width = Self::v2_width(_mm256_blendv_epi8(code, base_code, sequential), w);
+            let shared_before = Self::popcount(_mm256_and_si256(
+                _mm256_or_si256(before, _mm256_srli_epi32::<1>(before)),
+                _mm256_set1_epi32(LOW_BITS),
+            ));
+            V2Child {
+                bit,
+                width,
+                sequential,
+                index: _mm256_sub_epi32(rank, shared_before),
+            }
+        }
+
+        /// The `width` (1 ..= 40) bits from bit `shift` (0 ..= 7) of the 64
+        /// bits `lo | hi << 32`: the low 32 and the high bits of the value.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn v2_value(
+            lo: __m256i,
+            hi: __m256i,
+            shift: __m256i,
+            width: __m256i,
+        ) -> (__m256i, __m256i) {
+            // (A shift by 32 gives 0: `hi` adds nothing where `shift` is 0.)
+            let value_lo = _mm256_or_si256(
+                _mm256_srlv_epi32(lo, shift),
+                _mm256_sllv_epi32(hi, _mm256_sub_epi32(_mm256_set1_epi32(32), shift)),
+            );
+            let value_hi = _mm256_srlv_epi32(hi, shift);
+            let above = _mm256_max_epi32(
+                _mm256_sub_epi32(width, _mm256_set1_epi32(32)),
+                _mm256_setzero_si256(),
+            );
+            (
+                _mm256_and_si256(value_lo, Self::low_mask(width)),
+                _mm256_and_si256(value_hi, Self::low_mask(above)),
+            )
+        }
+    }
+
+    /// A child's reference as [`Avx2::v2_child`] finds it, per lane.
+    pub(crate) struct V2Child {
+        /// Bit offset of the reference from the end of the record's header.
+        pub(crate) bit: __m256i,
+        /// Its width in bits.
+        pub(crate) width: __m256i,
+        /// All ones where the child is sequential: `bit` and `width` are the
+        /// base reference's.
+        pub(crate) sequential: __m256i,
+        /// A sequential child's index among the record's sequential children.
+        pub(crate) index: __m256i,
+    }
+
     impl Avx512 {
         /// [`Avx2::child_mask`] on sixteen lanes.
         #[inline]
@@ -851,6 +1080,28 @@ mod tests {
         assert_eq!(sub_brick_mask(u64::MAX), 0xff);
     }
 
+    /// The 2.0 encoding of `count` random voxels of a depth-`depth` volume
+    /// and of their mirror images along `axis`: shared, reflected subtrees.
+    fn mirrored_v2(rng: &mut Rng, depth: u32, count: usize, axis: usize) -> dagfmt::v2::Encoded {
+        let side = 1u32 << depth;
+        let mut voxels: Vec<[u32; 3]> = (0..count)
+            .map(|_| [0; 3].map(|_| (rng.next() % u64::from(side)) as u32))
+            .collect();
+        let mirrored: Vec<[u32; 3]> = voxels
+            .iter()
+            .map(|&v| {
+                let mut m = v;
+                m[axis] = side - 1 - v[axis];
+                m
+            })
+            .collect();
+        voxels.extend(mirrored);
+        let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
+            .expect("valid voxels")
+            .to_bytes();
+        dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap()
+    }
+
     /// Every reference of the 2.0 encoding of random DAGs read through
     /// [`Level::child`] and [`Level::reference`] as dagfmt's decoder reads it
     /// (`decode_node`, `child_address`), sequential children included.
@@ -859,24 +1110,10 @@ mod tests {
         let mut rng = Rng(0x2e2);
         let (mut sequential, mut reflected) = (0, 0);
         for round in 0..6 {
-            let depth = 4 + round % 3;
-            let side = 1u64 << depth;
-            let mut voxels: Vec<[u32; 3]> = (0..200 << round)
-                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
-                .collect();
-            // Mirror images in x: shared, reflected subtrees.
-            let mirrored: Vec<[u32; 3]> = voxels
-                .iter()
-                .map(|&[x, y, z]| [side as u32 - 1 - x, y, z])
-                .collect();
-            voxels.extend(mirrored);
-            let bytes = DagBuilder::from_voxels(depth as u8, AttributeKind::VoxelCount, voxels)
-                .expect("valid voxels")
-                .to_bytes();
-            let enc = dagfmt::v2::encode(&Dag::open(&bytes).unwrap()).unwrap();
+            let enc = mirrored_v2(&mut rng, 4 + round % 3, 200 << round, 0);
             let views = enc.views();
             for (l, view) in views.iter().enumerate().filter(|(_, v)| !v.is_leaf) {
-                let level = Level::new_v2(view, views.get(l + 1)).unwrap();
+                let level = Level::new_v2(view, views.get(l + 1), None).unwrap();
                 let next = views[l + 1];
                 let child_level = (!next.is_leaf).then_some((next.bytes, next.widths));
                 let mut at = 0u64;
@@ -915,6 +1152,101 @@ mod tests {
         assert!(
             sequential > 0 && reflected > 0,
             "{sequential} sequential, {reflected} reflected"
+        );
+    }
+
+    /// The vector forms of the 2.0 decoding (`lanes::Avx2`) on every record
+    /// and child of the 2.0 encoding of random DAGs, one record to a lane,
+    /// against dagfmt's decoder: the codes and size of each record, and for
+    /// each child where its reference lies, its width, whether it is
+    /// sequential and its index, and the value read from there.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn vector_v2_decoding_reads_as_dagfmt_decodes() {
+        use std::arch::x86_64::*;
+        if !crate::cpu::available() {
+            eprintln!("no AVX2 on this processor: the vector 2.0 decoding was not tested");
+            return;
+        }
+        let lane = |v: __m256i| -> [u32; 8] {
+            let mut out = [0u32; 8];
+            // SAFETY: a store of eight lanes into eight values.
+            unsafe { _mm256_storeu_si256(out.as_mut_ptr().cast(), v) };
+            out
+        };
+        let mut rng = Rng(0x7ec2);
+        let (mut shared, mut sequential) = (0, 0);
+        for round in 0..6 {
+            let enc = mirrored_v2(&mut rng, 5 + round % 3, 300 << round, 1);
+            for view in enc.views().iter().filter(|v| !v.is_leaf) {
+                let w = view.widths.map(i32::from);
+                let mut at = 0u64;
+                while at < view.bytes.len() as u64 {
+                    let node = dagfmt::v2::decode_node(view.bytes, at, view.widths).unwrap();
+                    let mut padded = view.bytes[at as usize..].to_vec();
+                    padded.resize(padded.len().max(64), 0);
+                    let word = |i: usize| u32::from_le_bytes(padded[i..i + 4].try_into().unwrap());
+                    let mask = u32::from(node.child_mask());
+                    // SAFETY: AVX2 was found above.
+                    let (codes, count, size) = unsafe {
+                        let ws = w.map(|w| _mm256_set1_epi32(w));
+                        let (codes, count) = lanes::Avx2::v2_codes(
+                            _mm256_set1_epi32(mask as i32),
+                            _mm256_set1_epi32(word(4) as i32),
+                        );
+                        (codes, count, lanes::Avx2::v2_size(codes, count, ws))
+                    };
+                    assert_eq!(lane(size)[0], node.size, "record at {at}");
+                    let mut rank = 0;
+                    for slot in 0..8 {
+                        let Some(child) = node.children[slot] else {
+                            continue;
+                        };
+                        // SAFETY: AVX2 was found above.
+                        let c = unsafe {
+                            lanes::Avx2::v2_child(
+                                codes,
+                                count,
+                                _mm256_set1_epi32(mask as i32),
+                                _mm256_set1_epi32(rank),
+                                w.map(|w| _mm256_set1_epi32(w)),
+                            )
+                        };
+                        let bit = lane(c.bit)[0] as usize;
+                        let byte = 4 + bit / 8;
+                        // SAFETY: AVX2 was found above.
+                        let (value, high) = unsafe {
+                            lanes::Avx2::v2_value(
+                                _mm256_set1_epi32(word(byte) as i32),
+                                _mm256_set1_epi32(word(byte + 4) as i32),
+                                _mm256_set1_epi32((bit % 8) as i32),
+                                c.width,
+                            )
+                        };
+                        let value = u64::from(lane(value)[0]) | u64::from(lane(high)[0]) << 32;
+                        let is_sequential = lane(c.sequential)[0] != 0;
+                        match child {
+                            Child::Shared { target, reflection } => {
+                                shared += 1;
+                                assert!(!is_sequential);
+                                assert_eq!(value, target << 3 | u64::from(reflection));
+                            }
+                            Child::Sequential { base, index } => {
+                                sequential += 1;
+                                assert!(is_sequential);
+                                assert_eq!(value, base);
+                                assert_eq!(lane(c.index)[0], index);
+                            }
+                        }
+                        rank += 1;
+                    }
+                    at += u64::from(node.size);
+                }
+            }
+        }
+        assert!(
+            shared > 100 && sequential > 100,
+            "{shared} shared, {sequential} sequential"
         );
     }
 

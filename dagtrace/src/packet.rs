@@ -129,6 +129,8 @@ struct BeamCell {
     /// Path of nodes above it: `path[start..start + beam level]` of the
     /// packet's path store.
     path: usize,
+    /// Its node's accumulated reflection (spec §23.4; 0 in 1.0).
+    reflection: u8,
 }
 
 /// The beam: the packet's common origin and the per-axis range of its
@@ -299,6 +301,8 @@ struct BeamFrame {
     remaining: u8,
     /// Mirrored grid position of the node's lower corner.
     pos: [f64; 3],
+    /// The node's accumulated reflection (spec §23.4; 0 in 1.0).
+    reflection: u8,
 }
 
 /// One node on a packet's walk of a beam cell's subtree.
@@ -314,6 +318,11 @@ struct SubtreeFrame {
     rays: [u64; 8],
     /// Per child with rays: its pointer.
     pointers: [u32; 8],
+    /// The node's accumulated reflection R (spec §23.4; 0 in 1.0): the
+    /// packet's rays trace it in octant `neg ^ R`.
+    reflection: u8,
+    /// Per child with rays: its accumulated reflection.
+    reflections: [u8; 8],
 }
 
 impl PacketShape {
@@ -723,11 +732,6 @@ impl Tracer<'_> {
     /// by one.
     #[inline(never)]
     pub(crate) fn trace_packet(&self, rays: &[Ray], hits: &mut [Hit], shape: &PacketShape) -> bool {
-        if self.v2 {
-            // Packets decode 1.0 records only (a 2.0 tracer has `packets`
-            // off): its rays go to the lanes, which trace them one by one.
-            return false;
-        }
         #[cfg(target_arch = "x86_64")]
         if crate::cpu::available() {
             // SAFETY: checked.
@@ -787,6 +791,7 @@ impl Tracer<'_> {
             mask,
             remaining: beam.children_met(mask, [0.0; 3], root_size, neg),
             pos: [0.0; 3],
+            reflection: 0,
         };
         walk.level = Some(0);
         let mut cells = [BeamCell::default(); CELLS_PER_ROUND];
@@ -1024,6 +1029,7 @@ impl Tracer<'_> {
             lanes,
             origin,
             neg,
+            cell.reflection,
             self.children_at(level + 1, stop, ray_level),
         )?;
         loop {
@@ -1037,7 +1043,8 @@ impl Tracer<'_> {
                 size *= 2.0;
                 continue;
             }
-            let child = FIRST[neg][usize::from(frame.remaining)];
+            let node_neg = (neg ^ usize::from(frame.reflection)) & 7;
+            let child = FIRST[node_neg][usize::from(frame.remaining)];
             frame.remaining &= !(1 << child);
             let child_rays = frame.rays[usize::from(child) & 7] & *alive;
             if child_rays == 0 {
@@ -1045,8 +1052,9 @@ impl Tracer<'_> {
             }
             let pos = frame.pos;
             let pointer = frame.pointers[usize::from(child) & 7];
+            let child_reflection = frame.reflections[usize::from(child) & 7];
             let half = size * 0.5;
-            let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ neg) & 7] * half;
+            let child_pos = pos + CHILD_STEPS[(usize::from(child) ^ node_neg) & 7] * half;
             let child_level = level + 1;
             if child_level < stop {
                 top += 1;
@@ -1060,6 +1068,7 @@ impl Tracer<'_> {
                     lanes,
                     origin,
                     neg,
+                    child_reflection,
                     self.children_at(child_level + 1, stop, ray_level),
                 )?;
                 level = child_level;
@@ -1099,12 +1108,16 @@ impl Tracer<'_> {
         walks: &[Walk; PACKET_RAYS],
         origin: Vec3A,
         neg: usize,
+        reflection: u8,
         above: (&[Frame], &[SubtreeFrame]),
         alive: &mut u64,
         hits: &mut [Hit],
     ) -> Result<(), ()> {
         let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
         let mask = child_mask(section.header(level, word).map_err(|_| ())?);
+        // The node, and its bricks, are traced in octant `neg ^ R` (spec
+        // §23.4); a brick's R is the node's and its reference's.
+        let neg = (neg ^ usize::from(reflection)) & 7;
         let half = size * 0.5;
         // Offsets of the planes from the packet's origin, as `resume` and
         // `brick` compute them (so the same roundings).
@@ -1138,16 +1151,16 @@ impl Tracer<'_> {
         // The bricks' leaf masks are read soon: start all their reads now.
         let leaves = &self.levels[usize::from(self.leaf_level) & (LEVEL_SLOTS - 1)];
         let mut pointers = [0u32; 8];
+        let mut reflections = [0u8; 8];
         let mut children = union;
         while children != 0 {
             let c = children.trailing_zeros() as usize & 7;
             children &= children - 1;
-            let pointer = section
-                .child(level, word, mask, c as u32)
-                .map_err(|_| ())?
-                .node;
+            let reference = section.child(level, word, mask, c as u32).map_err(|_| ())?;
+            let pointer = reference.node;
             prefetch(leaves.bytes, pointer as usize * 8);
             pointers[c] = pointer;
+            reflections[c] = (reflection ^ reference.reflection) & 7;
         }
         for &(r, chain) in &chains[..n] {
             let r = usize::from(r) & (PACKET_RAYS - 1);
@@ -1158,10 +1171,11 @@ impl Tracer<'_> {
                 let c = FIRST[neg][usize::from(remaining)];
                 remaining &= !(1 << c);
                 let pointer = pointers[usize::from(c) & 7];
+                let leaf_reflection = reflections[usize::from(c) & 7];
                 let child = (usize::from(c) ^ neg) & 7;
                 let brick_pos = pos + CHILD_STEPS[child] * half;
                 let Some((cell_pos, cell_level)) =
-                    self.brick_in_node(q, pointer, brick_pos, child, planes)?
+                    self.brick_in_node(q, pointer, leaf_reflection, brick_pos, child, planes)?
                 else {
                     continue;
                 };
@@ -1169,6 +1183,7 @@ impl Tracer<'_> {
                 let node = Frame {
                     word,
                     mask,
+                    reflection,
                     ..Frame::default()
                 };
                 let (path, frames) = above;
@@ -1215,19 +1230,23 @@ impl Tracer<'_> {
             lanes,
             origin,
             neg,
+            cell.reflection,
             self.children_at(middle, stop, ray_level),
         )?;
         let mut remaining = frames[0].remaining;
+        let cell_neg = (neg ^ usize::from(cell.reflection)) & 7;
         while remaining != 0 {
-            let child = FIRST[neg][usize::from(remaining)];
+            let child = FIRST[cell_neg][usize::from(remaining)];
             remaining &= !(1 << child);
             let child = usize::from(child) & 7;
             let child_rays = frames[0].rays[child] & *alive;
             if child_rays == 0 {
                 continue;
             }
-            let child_pos = frames[0].pos + CHILD_STEPS[child ^ neg] * half;
+            let child_pos = frames[0].pos + CHILD_STEPS[child ^ cell_neg] * half;
             let pointer = frames[0].pointers[child];
+            let child_reflection = frames[0].reflections[child];
+            let child_neg = (neg ^ usize::from(child_reflection)) & 7;
             self.visit_subtree_node(
                 &mut frames[1],
                 middle,
@@ -1238,11 +1257,12 @@ impl Tracer<'_> {
                 lanes,
                 origin,
                 neg,
+                child_reflection,
                 self.children_at(middle + 1, stop, ray_level),
             )?;
             let mut inner = frames[1].remaining;
             while inner != 0 {
-                let grandchild = FIRST[neg][usize::from(inner)];
+                let grandchild = FIRST[child_neg][usize::from(inner)];
                 inner &= !(1 << grandchild);
                 let grandchild = usize::from(grandchild) & 7;
                 let grandchild_rays = frames[1].rays[grandchild] & *alive;
@@ -1252,12 +1272,13 @@ impl Tracer<'_> {
                 self.visit_bottom(
                     middle + 1,
                     frames[1].pointers[grandchild],
-                    frames[1].pos + CHILD_STEPS[grandchild ^ neg] * quarter,
+                    frames[1].pos + CHILD_STEPS[grandchild ^ child_neg] * quarter,
                     quarter,
                     grandchild_rays,
                     walks,
                     origin,
                     neg,
+                    frames[1].reflections[grandchild],
                     (path, &frames),
                     alive,
                     hits,
@@ -1288,6 +1309,7 @@ impl Tracer<'_> {
         let walked = frames.iter().map(|f| Frame {
             word: f.word,
             mask: f.mask,
+            reflection: f.reflection,
             ..Frame::default()
         });
         for (k, f) in walked.chain(node).enumerate() {
@@ -1302,7 +1324,9 @@ impl Tracer<'_> {
     #[inline(always)]
     fn children_at(&self, level: u8, stop: u8, ray_level: u8) -> (&[u8], usize) {
         if level < stop {
-            (self.levels[usize::from(level) & (LEVEL_SLOTS - 1)].bytes, 4)
+            let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
+            // Bytes per unit of a node's address: 4 in 1.0, 1 in 2.0.
+            (section.bytes, section.node_byte(1))
         } else if stop != ray_level {
             (
                 self.levels[usize::from(self.leaf_level) & (LEVEL_SLOTS - 1)].bytes,
@@ -1330,11 +1354,14 @@ impl Tracer<'_> {
         lanes: &PacketLanes,
         origin: Vec3A,
         neg: usize,
+        reflection: u8,
         children_at: (&[u8], usize),
     ) -> Result<(), ()> {
         let header = self.levels[usize::from(level) & (LEVEL_SLOTS - 1)]
             .header(level, word)
             .map_err(|_| ())?;
+        // The node is traced in octant `neg ^ R` (spec §23.4).
+        let neg = (neg ^ usize::from(reflection)) & 7;
         let mask = child_mask(header);
         // The plane offsets are common to the packet (one origin); the same
         // operations as `resume`, so the same roundings.
@@ -1358,6 +1385,7 @@ impl Tracer<'_> {
         frame.mask = mask;
         frame.remaining = 0;
         frame.pos = pos;
+        frame.reflection = reflection;
         if tests.inside != 0 {
             let section = &self.levels[usize::from(level) & (LEVEL_SLOTS - 1)];
             let (child_bytes, record) = children_at;
@@ -1377,13 +1405,12 @@ impl Tracer<'_> {
                 children &= children - 1;
                 // The children are read soon, and most miss the cache: start
                 // all their reads now.
-                let pointer = section
-                    .child(level, word, mask, c as u32)
-                    .map_err(|_| ())?
-                    .node;
+                let reference = section.child(level, word, mask, c as u32).map_err(|_| ())?;
+                let pointer = reference.node;
                 prefetch(child_bytes, pointer as usize * record);
                 frame.rays[c] = through_all[(c ^ neg) & 7];
                 frame.pointers[c] = pointer;
+                frame.reflections[c] = (reflection ^ reference.reflection) & 7;
             }
         }
         Ok(())
@@ -1472,33 +1499,40 @@ impl Tracer<'_> {
                 walk.level = level.checked_sub(1);
                 continue;
             }
-            let child = FIRST[neg][usize::from(frame.remaining)];
+            // A node reached with accumulated reflection R is traced in
+            // octant `neg ^ R` (spec §23.4, `node`'s docs).
+            let node_neg = (neg ^ usize::from(frame.reflection)) & 7;
+            let child = FIRST[node_neg][usize::from(frame.remaining)];
             walk.frames[l].remaining &= !(1 << child);
-            let m = usize::from(child) ^ neg;
+            let m = usize::from(child) ^ node_neg;
             let half = f64::from(self.cell_size[l + 1]);
             let pos = [
                 frame.pos[0] + (m & 1) as f64 * half,
                 frame.pos[1] + (m >> 1 & 1) as f64 * half,
                 frame.pos[2] + (m >> 2 & 1) as f64 * half,
             ];
-            let pointer = self.levels[l]
+            let reference = self.levels[l]
                 .child(level, frame.word, frame.mask, u32::from(child))
-                .map_err(|_| ())?
-                .node;
+                .map_err(|_| ())?;
+            let pointer = reference.node;
+            let reflection = (frame.reflection ^ reference.reflection) & 7;
             if level + 1 == beam_level {
                 let path = listed * LEVEL_SLOTS;
                 for (slot, f) in paths[path..path + l + 1].iter_mut().zip(&walk.frames) {
                     *slot = Frame {
                         word: f.word,
                         mask: f.mask,
+                        reflection: f.reflection,
                         ..Frame::default()
                     };
                 }
-                prefetch(self.levels[l + 1].bytes, pointer as usize * 4);
+                let cell_level = &self.levels[l + 1];
+                prefetch(cell_level.bytes, cell_level.node_byte(pointer));
                 cells[listed] = BeamCell {
                     word: pointer,
                     pos: Vec3A::new(pos[0] as f32, pos[1] as f32, pos[2] as f32),
                     path,
+                    reflection,
                 };
                 listed += 1;
                 continue;
@@ -1510,8 +1544,9 @@ impl Tracer<'_> {
             walk.frames[l + 1] = BeamFrame {
                 word: pointer,
                 mask,
-                remaining: beam.children_met(mask, pos, half, neg),
+                remaining: beam.children_met(mask, pos, half, neg ^ usize::from(reflection)),
                 pos,
+                reflection,
             };
             walk.level = Some(level + 1);
         }
@@ -1653,6 +1688,56 @@ mod tests {
             }
             assert_eq!(tracer.packet_len(&other), 0, "change {change}");
         }
+    }
+
+    /// Format 2.0 (spec §23): packets trace the 2.0 encoding of the scenes
+    /// (the beam walk and the cells' walks carrying each node's
+    /// accumulated reflection) with the answers of the 1.0 tracer's single
+    /// rays, attribute index included; most packets are traced as packets,
+    /// through reflected references.
+    #[test]
+    fn packets_trace_format_2_like_1_0_single_rays() {
+        let mut rng = Rng(0x2a);
+        let (mut traced, mut hit_count, mut total, mut reflected) = (0, 0, 0, 0);
+        for _ in 0..3 {
+            let (bytes, centres) = scene(&mut rng);
+            let dag = Dag::open(&bytes).unwrap();
+            let v1 = Tracer::new(&dag).unwrap();
+            let enc = dagfmt::v2::encode(&dag).unwrap();
+            for level in enc.levels.iter().filter(|l| !l.is_leaf) {
+                let mut at = 0u64;
+                while at < level.bytes.len() as u64 {
+                    let node = dagfmt::v2::decode_node(&level.bytes, at, level.widths).unwrap();
+                    reflected += node
+                        .children
+                        .iter()
+                        .flatten()
+                        .filter(|c| {
+                            matches!(c, dagfmt::v2::Child::Shared { reflection, .. } if *reflection != 0)
+                        })
+                        .count();
+                    at += u64::from(node.size);
+                }
+            }
+            let v2 = Tracer::from_v2_levels(dag.header(), &enc.views(), None).unwrap();
+            let rays = packets(&mut rng, &centres, 60, PACKET_RAYS);
+            for (p, chunk) in rays.chunks(PACKET_RAYS).enumerate() {
+                let mut hits = vec![Hit::MISS; chunk.len()];
+                if v2.try_packet(chunk, &mut hits) {
+                    traced += 1;
+                } else {
+                    v2.trace_lanes(chunk, &mut hits).unwrap();
+                }
+                for (ray, hit) in chunk.iter().zip(&hits) {
+                    assert_eq!(*hit, v1.trace(ray).unwrap(), "packet {p}: {ray:?}");
+                    hit_count += usize::from(hit.hit);
+                    total += 1;
+                }
+            }
+        }
+        assert!(traced >= 120, "{traced} of 180 packets traced as packets");
+        assert!(hit_count * 10 >= total, "{hit_count} of {total} hit");
+        assert!(reflected > 0, "no reflected references");
     }
 
     #[test]

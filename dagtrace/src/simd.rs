@@ -68,6 +68,18 @@
 //! one decoding module; references the vector step cannot read are read by
 //! `node::Level::reference_or_fault` in the scalar tail.
 //!
+//! Format 2.0 (spec §23) runs in the eight lanes, [`step`] compiled with
+//! `V2` (1.0's copy has none of it): each lane carries the accumulated
+//! reflection R of its node and traces it in octant `neg ^ R` (the
+//! `CHAIN` and `FIRST` keys, the child's corner), R goes into the frame's
+//! last byte (`Frame::reflection`), node addresses are byte offsets, and
+//! [`v2_reference`] decodes the chosen child's reference with
+//! `node::lanes::Avx2`'s 2.0 forms (three to four gathers, plus two per
+//! sequential sibling before the child); references near their section's
+//! end, or wider than 32 bits, go to `node::Level::child_or_fault` in the
+//! scalar tail. The sixteen lanes decode 1.0 only; a 2.0 tracer takes
+//! eight whatever `Lanes` says.
+//!
 //! Left to do: `step` and `step_wide` still repeat each other's ~250 lines
 //! in 256- and 512-bit intrinsics. Writing them once (a lane-width trait
 //! whose two forms wrap the intrinsics, inlined into `run` and `run_wide`)
@@ -80,6 +92,7 @@ use dagfmt::batch::{Hit, Ray};
 use glam::{BVec3A, Vec3A};
 
 use crate::cpu::wide_available;
+use crate::node::HEADER_BYTES;
 use crate::node::lanes::{Avx2, Avx512, HEADER_SHIFT, LEAF_SHIFT};
 use crate::tables::{CHAIN_PADDED, FIRST_PADDED};
 use crate::walk::{
@@ -145,6 +158,22 @@ struct Sections {
     /// own end as the limit, d12 random rays sent 4 % of their pointers,
     /// those of the small top levels, down the scalar path.)
     fast_limit: [i32; LEVEL_TABLE],
+    /// Per level: the node addresses below it have a whole header in the
+    /// section (1.0: `len / 4` words; 2.0: `len - 3` bytes).
+    nodes: [i32; LEVEL_TABLE],
+    /// 2.0, per level: the byte offsets below it have eight readable bytes
+    /// (in the section or the file after it, `Level::readable`): the lanes
+    /// gather the 32 bits after a header, and a reference's 64 bits, there,
+    /// and check that what they decode lies in the section (`len`); the
+    /// scalar `Level::child_or_fault` reads the others.
+    v2_end: [i32; LEVEL_TABLE],
+    /// 2.0, per level: the widths w_1, w_2, w_3 of its references.
+    v2_width: [[i32; LEVEL_TABLE]; 3],
+    /// The leaf level.
+    leaf_level: i32,
+    /// An offset from `base` with eight readable bytes (the first leaf):
+    /// where the lanes out of a [`gather_pair`] with `LOADS` read.
+    spare: i32,
 }
 
 impl Sections {
@@ -163,6 +192,11 @@ impl Sections {
             len: [0; LEVEL_TABLE],
             width: [0; LEVEL_TABLE],
             fast_limit: [-1; LEVEL_TABLE],
+            nodes: [0; LEVEL_TABLE],
+            v2_end: [0; LEVEL_TABLE],
+            v2_width: [[0; LEVEL_TABLE]; 3],
+            leaf_level: i32::from(tracer.leaf_level),
+            spare: 0,
         };
         for (l, level) in used.iter().enumerate() {
             if level.bytes.is_empty() {
@@ -180,6 +214,25 @@ impl Sections {
             // (At most 64 bytes past the section: the room checked above.)
             let in_file = level.readable.len().min(level.bytes.len() + 64) as i64 - 4;
             s.fast_limit[l] = in_section.min(in_file).max(-1) as i32;
+            let len = level.bytes.len() as i32;
+            s.nodes[l] = if tracer.v2 {
+                (len - 3).max(0)
+            } else {
+                len >> 2
+            };
+            // (At most 64 bytes past the section: the room checked above.)
+            let readable = level.readable.len().min(level.bytes.len() + 64) as i32;
+            s.v2_end[l] = (readable - 7).max(0);
+            for (j, w) in level.v2_widths().into_iter().enumerate() {
+                s.v2_width[j][l] = w;
+            }
+        }
+        if tracer.v2 {
+            let leaves = &used[used.len() - 1];
+            if leaves.bytes.len() < 8 {
+                return None;
+            }
+            s.spare = s.offset[used.len() - 1];
         }
         Some(s)
     }
@@ -225,6 +278,10 @@ struct Group<const W: usize> {
     remaining: [i32; W],
     /// Bit `l` set when the frame of level `l` on the path has children left.
     pending: [i32; W],
+    /// The accumulated reflection R (spec §23.4; 0 in 1.0) of the node the
+    /// lane stands on, and of `target`.
+    reflection: [i32; W],
+    target_reflection: [i32; W],
     /// Each ray as the scalar parts take it: clipped (`Walk::q`), and its
     /// own `tmin` (`Walk::ray_tmin`). The rest of its `Walk` lives in the
     /// vectors above.
@@ -262,6 +319,8 @@ impl<const W: usize> Default for Group<W> {
             mask: [0; W],
             remaining: [0; W],
             pending: [0; W],
+            reflection: [0; W],
+            target_reflection: [0; W],
             prepared: [Prepared::default(); W],
             ray_tmin: [0.0; W],
             stacks: [Stack::default(); W],
@@ -292,6 +351,7 @@ impl<const W: usize> Group<W> {
         self.report[lane] = if walk.stop == q.level { -1 } else { 0 };
         self.level[lane] = i32::from(walk.level);
         self.target[lane] = walk.target as i32;
+        self.target_reflection[lane] = i32::from(walk.reflection);
         self.state[lane] = state::VISIT;
         self.pending[lane] = 0;
         self.prepared[lane] = walk.q;
@@ -345,12 +405,22 @@ fn try_trace_lanes_with(
     hits: &mut [Hit],
     how: LaneChoice,
 ) -> Result<(), Abandon> {
-    if tracer.v2 {
-        // The lanes decode 1.0 records only: a 2.0 DAG (spec §23) goes to
-        // the scalar steps, which read it through `node::Level`.
-        return Err(Abandon);
-    }
     let sections = Sections::new(tracer).ok_or(Abandon)?;
+    if tracer.v2 {
+        // A 2.0 DAG (spec §23): eight lanes, which decode its records
+        // (`step`'s `V2`); the sixteen lanes decode 1.0 records only.
+        // SAFETY: only called where `available()` found the features.
+        return unsafe {
+            match (how.small, how.loads) {
+                (true, false) => {
+                    run::<SMALL_DAG_GROUPS, false, true>(tracer, &sections, rays, hits)
+                }
+                (true, true) => run::<SMALL_DAG_GROUPS, true, true>(tracer, &sections, rays, hits),
+                (false, false) => run::<GROUPS, false, true>(tracer, &sections, rays, hits),
+                (false, true) => run::<GROUPS, true, true>(tracer, &sections, rays, hits),
+            }
+        };
+    }
     if how.wide && wide_available() {
         // SAFETY: `wide_available()` found the features.
         return unsafe {
@@ -364,10 +434,10 @@ fn try_trace_lanes_with(
     // SAFETY: only called where `available()` found the features.
     unsafe {
         match (how.small, how.loads) {
-            (true, false) => run::<SMALL_DAG_GROUPS, false>(tracer, &sections, rays, hits),
-            (true, true) => run::<SMALL_DAG_GROUPS, true>(tracer, &sections, rays, hits),
-            (false, false) => run::<GROUPS, false>(tracer, &sections, rays, hits),
-            (false, true) => run::<GROUPS, true>(tracer, &sections, rays, hits),
+            (true, false) => run::<SMALL_DAG_GROUPS, false, false>(tracer, &sections, rays, hits),
+            (true, true) => run::<SMALL_DAG_GROUPS, true, false>(tracer, &sections, rays, hits),
+            (false, false) => run::<GROUPS, false, false>(tracer, &sections, rays, hits),
+            (false, true) => run::<GROUPS, true, false>(tracer, &sections, rays, hits),
         }
     }
 }
@@ -394,8 +464,8 @@ trait StepLanes {
     /// # Safety
     ///
     /// The processor must have the features of the step function (AVX2,
-    /// and AVX-512 for sixteen lanes).
-    unsafe fn step<const LOADS: bool>(
+    /// and AVX-512 for sixteen lanes). `V2` (a 2.0 DAG) only for eight lanes.
+    unsafe fn step<const LOADS: bool, const V2: bool>(
         &mut self,
         tracer: &Tracer<'_>,
         sections: &Sections,
@@ -404,23 +474,27 @@ trait StepLanes {
 
 impl StepLanes for Group<W> {
     #[inline(always)]
-    unsafe fn step<const LOADS: bool>(
+    unsafe fn step<const LOADS: bool, const V2: bool>(
         &mut self,
         tracer: &Tracer<'_>,
         sections: &Sections,
     ) -> Result<u32, Abandon> {
         // SAFETY: the caller's.
-        unsafe { step::<LOADS>(tracer, sections, self) }
+        unsafe { step::<LOADS, V2>(tracer, sections, self) }
     }
 }
 
 impl StepLanes for Group<WIDE> {
     #[inline(always)]
-    unsafe fn step<const LOADS: bool>(
+    unsafe fn step<const LOADS: bool, const V2: bool>(
         &mut self,
         tracer: &Tracer<'_>,
         sections: &Sections,
     ) -> Result<u32, Abandon> {
+        if V2 {
+            // Never run: 2.0 DAGs take eight lanes (`try_trace_lanes_with`).
+            return Err(Abandon);
+        }
         // SAFETY: the caller's.
         unsafe { step_wide::<LOADS>(tracer, sections, self) }
     }
@@ -428,14 +502,14 @@ impl StepLanes for Group<WIDE> {
 
 /// [`run_groups`] with eight lanes to a group, compiled for AVX2.
 #[target_feature(enable = "avx2,bmi1,bmi2,popcnt,lzcnt,fma")]
-unsafe fn run<const G: usize, const LOADS: bool>(
+unsafe fn run<const G: usize, const LOADS: bool, const V2: bool>(
     tracer: &Tracer<'_>,
     sections: &Sections,
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
     // SAFETY: compiled with the features `step` needs.
-    unsafe { run_groups::<W, G, LOADS>(tracer, sections, rays, hits) }
+    unsafe { run_groups::<W, G, LOADS, V2>(tracer, sections, rays, hits) }
 }
 
 /// [`run_groups`] with sixteen lanes to a group, compiled for AVX-512 (and
@@ -450,7 +524,7 @@ unsafe fn run_wide<const G: usize, const LOADS: bool>(
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
     // SAFETY: compiled with the features `step_wide` needs.
-    unsafe { run_groups::<WIDE, G, LOADS>(tracer, sections, rays, hits) }
+    unsafe { run_groups::<WIDE, G, LOADS, false>(tracer, sections, rays, hits) }
 }
 
 /// The vector traversal of `rays` into `hits`: `G` groups of `N` lanes step
@@ -463,7 +537,7 @@ unsafe fn run_wide<const G: usize, const LOADS: bool>(
 /// The processor must have the features of `Group<N>`'s step; inlined into
 /// [`run`] and [`run_wide`], which are compiled with them.
 #[inline(always)]
-unsafe fn run_groups<const N: usize, const G: usize, const LOADS: bool>(
+unsafe fn run_groups<const N: usize, const G: usize, const LOADS: bool, const V2: bool>(
     tracer: &Tracer<'_>,
     sections: &Sections,
     rays: &[Ray],
@@ -491,7 +565,9 @@ where
                         let leaf = group.target[lane] as u32;
                         let at = Vec3A::new(group.bx[lane], group.by[lane], group.bz[lane]);
                         let mut fault = None;
-                        let found = tracer.brick(&group.prepared[lane], leaf, 0, at, &mut fault);
+                        let reflection = group.target_reflection[lane] as u8;
+                        let found =
+                            tracer.brick(&group.prepared[lane], leaf, reflection, at, &mut fault);
                         if fault.is_some() {
                             return Err(Abandon);
                         }
@@ -546,7 +622,7 @@ where
                 0
             } else {
                 // SAFETY: the caller's: the processor has the step's features.
-                unsafe { group.step::<LOADS>(tracer, sections) }?
+                unsafe { group.step::<LOADS, V2>(tracer, sections) }?
             };
         }
         if busy.iter().all(|&b| b == 0) {
@@ -783,10 +859,14 @@ struct StepOut<const N: usize> {
     /// brick's leaf mask, to prefetch.
     fetch: [i32; N],
     /// For the pointers the gather left: the node's word, its level and the
-    /// child's rank (stored only when some lane needs them).
+    /// child's rank (stored only when some lane needs them); in 2.0 the
+    /// child's physical slot instead of its rank, and the node's mask and
+    /// accumulated reflection.
     word: [i32; N],
     level: [i32; N],
     rank: [i32; N],
+    mask: [i32; N],
+    reflection: [i32; N],
 }
 
 impl<const N: usize> StepOut<N> {
@@ -799,19 +879,24 @@ impl<const N: usize> StepOut<N> {
             word: [0; N],
             level: [0; N],
             rank: [0; N],
+            mask: [0; N],
+            reflection: [0; N],
         }
     }
 
     /// A step's scalar tail: each lane's frame stored and its next read
     /// prefetched, then the pointers of the lanes in `slow` read one by one
-    /// (near the file's end, or outside their section in malformed files).
+    /// (near the file's end, or outside their section in malformed files;
+    /// `V2`: 2.0 references near their section's end or too wide for the
+    /// vector decoding, read by `Level::child_or_fault`, which also sets the
+    /// child's accumulated reflection).
     ///
     /// # Safety
     ///
     /// `frame_at[lane]` must be `256 * lane + 8 * level` with `level <
     /// LEVEL_SLOTS`, for every lane.
     #[inline(always)]
-    unsafe fn write_back(
+    unsafe fn write_back<const V2: bool>(
         &self,
         tracer: &Tracer<'_>,
         s: &Sections,
@@ -841,16 +926,30 @@ impl<const N: usize> StepOut<N> {
             lanes &= lanes - 1;
             let level = self.level[lane] as usize & (LEVEL_SLOTS - 1);
             let mut fault = None;
-            let reference = tracer.levels[level].reference_or_fault(
-                level as u8,
-                self.word[lane] as u32,
-                self.rank[lane] as u32,
-                &mut fault,
-            );
+            let reference = if V2 {
+                tracer.levels[level].child_or_fault::<true>(
+                    level as u8,
+                    self.word[lane] as u32,
+                    self.mask[lane] as u8,
+                    self.rank[lane] as u32,
+                    &mut fault,
+                )
+            } else {
+                tracer.levels[level].reference_or_fault(
+                    level as u8,
+                    self.word[lane] as u32,
+                    self.rank[lane] as u32,
+                    &mut fault,
+                )
+            };
             if fault.is_some() {
                 return Err(Abandon);
             }
             g.target[lane] = reference.node as i32;
+            if V2 {
+                g.target_reflection[lane] =
+                    (self.reflection[lane] ^ i32::from(reference.reflection)) & 7;
+            }
         }
         Ok(())
     }
@@ -885,7 +984,7 @@ macro_rules! sti {
 /// The processor must have AVX2.
 #[inline]
 #[target_feature(enable = "avx2")]
-unsafe fn step<const LOADS: bool>(
+unsafe fn step<const LOADS: bool, const V2: bool>(
     tracer: &Tracer<'_>,
     s: &Sections,
     g: &mut Group<W>,
@@ -914,7 +1013,7 @@ unsafe fn step<const LOADS: bool>(
         let tables = |t: &[i32; LEVEL_TABLE]| {
             [0, 8, 16].map(|i| _mm256_loadu_si256(t[i..i + 8].as_ptr().cast()))
         };
-        let (offsets, lens, widths) = (tables(&s.offset), tables(&s.len), tables(&s.width));
+        let (offsets, nodes, widths) = (tables(&s.offset), tables(&s.nodes), tables(&s.width));
         let fast_limits = tables(&s.fast_limit);
 
         let state = ldi!(g.state);
@@ -923,17 +1022,26 @@ unsafe fn step<const LOADS: bool>(
         let mut level = ldi!(g.level);
         let target = ldi!(g.target);
         let neg = ldi!(g.neg);
+        // 2.0: the accumulated reflection R of the node each lane visits or
+        // stands on, which is traced as a 1.0 node in octant `neg ^ R` (spec
+        // §23.4, `node`'s docs); 0 in 1.0.
+        let mut reflection = if V2 {
+            blend(ldi!(g.reflection), ldi!(g.target_reflection), visit)
+        } else {
+            zero
+        };
 
         // Visit: the header, bounds-checked like `Level::header_or_fault`.
-        let len = by_level(&lens, level);
-        let inside = lt_u32(target, _mm256_srli_epi32::<2>(len));
+        let inside = lt_u32(target, by_level(&nodes, level));
         if _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_andnot_si256(inside, visit))) != 0 {
             return Err(Abandon);
         }
+        // (A 2.0 node's address is its header's byte offset.)
+        let header_at = if V2 { target } else { Avx2::header_at(target) };
         let header = gather::<LOADS>(
             zero,
             base,
-            _mm256_add_epi32(by_level(&offsets, level), Avx2::header_at(target)),
+            _mm256_add_epi32(by_level(&offsets, level), header_at),
             visit,
         );
         let (ox, oy, oz) = (ldf!(g.ox), ldf!(g.oy), ldf!(g.oz));
@@ -975,7 +1083,10 @@ unsafe fn step<const LOADS: bool>(
         );
         let chain = table_bytes::<LOADS>(
             &CHAIN_PADDED,
-            _mm256_or_si256(_mm256_slli_epi32::<9>(neg), key),
+            _mm256_or_si256(
+                _mm256_slli_epi32::<9>(_mm256_xor_si256(neg, reflection)),
+                key,
+            ),
             visit,
         );
         let node_mask = Avx2::child_mask(header);
@@ -1010,6 +1121,11 @@ unsafe fn step<const LOADS: bool>(
         word = gather::<LOADS>(word, stacks, frame_at, pop);
         let f_bits = gather::<LOADS>(zero, stacks.add(1), frame_at, pop);
         mask = blend(mask, _mm256_and_si256(f_bits, byte), pop);
+        if V2 {
+            // `Frame::reflection`, the frame's last byte.
+            reflection = blend(reflection, _mm256_srli_epi32::<24>(f_bits), pop);
+        }
+        let node_neg = _mm256_xor_si256(neg, reflection);
         remaining = blend(
             remaining,
             _mm256_and_si256(_mm256_srli_epi32::<8>(f_bits), byte),
@@ -1032,7 +1148,7 @@ unsafe fn step<const LOADS: bool>(
         let choose = _mm256_andnot_si256(at_top, active);
         let child = table_bytes::<LOADS>(
             &FIRST_PADDED,
-            _mm256_or_si256(_mm256_slli_epi32::<8>(neg), remaining),
+            _mm256_or_si256(_mm256_slli_epi32::<8>(node_neg), remaining),
             choose,
         );
         let bit = _mm256_and_si256(_mm256_sllv_epi32(one, child), choose);
@@ -1043,22 +1159,30 @@ unsafe fn step<const LOADS: bool>(
             _mm256_andnot_si256(_mm256_cmpeq_epi32(remaining, zero), level_bit),
         );
         let rank = popcount8(_mm256_and_si256(mask, _mm256_sub_epi32(bit, one)));
-        let fast_limit = by_level(&fast_limits, level);
-        let width = by_level(&widths, level);
-        let pointer_mask = Avx2::reference_mask(width);
-        let at = Avx2::reference_at(word, rank, width);
-        let cut = _mm256_cmpgt_epi32(at, fast_limit);
-        let fast = _mm256_andnot_si256(cut, choose);
-        let pointer = _mm256_and_si256(
-            gather::<LOADS>(
-                zero,
-                base,
-                _mm256_add_epi32(by_level(&offsets, level), at),
-                fast,
-            ),
-            pointer_mask,
-        );
-        let m = axis_masks(_mm256_xor_si256(child, neg));
+        // The child's reference: its target and (2.0) the reflection it
+        // carries; `cut`: the lanes whose reference is read by the scalar
+        // tail.
+        let (pointer, child_reflection, cut) = if V2 {
+            v2_reference::<LOADS>(s, base, level, word, mask, rank, choose)
+        } else {
+            let fast_limit = by_level(&fast_limits, level);
+            let width = by_level(&widths, level);
+            let pointer_mask = Avx2::reference_mask(width);
+            let at = Avx2::reference_at(word, rank, width);
+            let cut = _mm256_cmpgt_epi32(at, fast_limit);
+            let fast = _mm256_andnot_si256(cut, choose);
+            let pointer = _mm256_and_si256(
+                gather::<LOADS>(
+                    zero,
+                    base,
+                    _mm256_add_epi32(by_level(&offsets, level), at),
+                    fast,
+                ),
+                pointer_mask,
+            );
+            (pointer, zero, cut)
+        };
+        let m = axis_masks(_mm256_xor_si256(child, node_neg));
         let cx = _mm256_add_ps(px, _mm256_and_ps(half, m[0]));
         let cy = _mm256_add_ps(py, _mm256_and_ps(half, m[1]));
         let cz = _mm256_add_ps(pz, _mm256_and_ps(half, m[2]));
@@ -1066,7 +1190,10 @@ unsafe fn step<const LOADS: bool>(
         // lane (the lanes that choose no child write to the unused last slot).
         let frame_bits = _mm256_or_si256(
             _mm256_or_si256(mask, _mm256_slli_epi32::<8>(remaining)),
-            _mm256_slli_epi32::<16>(child),
+            _mm256_or_si256(
+                _mm256_slli_epi32::<16>(child),
+                _mm256_slli_epi32::<24>(reflection),
+            ),
         );
         // `Frame`'s bytes (`repr(C)`: `word`, then the bits), lanes 0, 1, 4, 5
         // and 2, 3, 6, 7, put back in lane order.
@@ -1089,7 +1216,7 @@ unsafe fn step<const LOADS: bool>(
         let at_stop = _mm256_and_si256(choose, _mm256_cmpeq_epi32(child_level, ldi!(g.stop)));
         // What to prefetch: the child's header, or the brick's leaf mask.
         let scale = _mm256_blendv_epi8(
-            _mm256_set1_epi32(HEADER_SHIFT),
+            _mm256_set1_epi32(if V2 { 0 } else { HEADER_SHIFT }),
             _mm256_set1_epi32(LEAF_SHIFT),
             at_stop,
         );
@@ -1124,6 +1251,17 @@ unsafe fn step<const LOADS: bool>(
         stf!(g.by, cy);
         stf!(g.bz, cz);
         sti!(g.target, blend(target, pointer, choose));
+        if V2 {
+            sti!(g.reflection, reflection);
+            sti!(
+                g.target_reflection,
+                blend(
+                    ldi!(g.target_reflection),
+                    _mm256_xor_si256(reflection, child_reflection),
+                    choose
+                )
+            );
+        }
         sti!(g.word, word);
         sti!(g.mask, mask);
         sti!(g.remaining, remaining);
@@ -1136,15 +1274,202 @@ unsafe fn step<const LOADS: bool>(
         if slow_bits != 0 {
             sti!(out.word, word);
             sti!(out.level, frame_level);
-            sti!(out.rank, rank);
+            if V2 {
+                // The child's physical slot, its node's mask and R.
+                sti!(out.rank, child);
+                sti!(out.mask, mask);
+                sti!(out.reflection, reflection);
+            } else {
+                sti!(out.rank, rank);
+            }
         }
         done_bits = lanes(_mm256_or_si256(at_stop, at_top));
     }
 
     // SAFETY: `out.frame_at` holds `256 * lane + 8 * level` with `level <
     // LEVEL_SLOTS` in every lane (`frame_level` above).
-    unsafe { out.write_back(tracer, s, g, slow_bits & choose_bits) }?;
+    unsafe { out.write_back::<V2>(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
+}
+
+/// The per-level table `t` as [`by_level`] reads it.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn level_table(t: &[i32; LEVEL_TABLE]) -> [__m256i; 3] {
+    // SAFETY: loads of eight values inside the table.
+    [0, 8, 16].map(|i| unsafe { _mm256_loadu_si256(t[i..i + 8].as_ptr().cast()) })
+}
+
+/// 2.0 (spec §23.2, §23.3): the reference of the child of rank `rank` of
+/// each lane's node `word` (a byte offset) of `level`, whose child mask is
+/// `mask`, in the lanes of `lanes`, decoded as `node::Level::child_or_fault`
+/// decodes it (the meaning of the words from `node::lanes::Avx2`): its
+/// target, the reflection it carries, and the lanes left to that scalar
+/// decoding: words near the end of their section (the gathers read eight
+/// bytes), and values that do not fit in 32 bits.
+///
+/// A sequential child of a node level is found by adding the sizes of its
+/// sequential siblings before it, read from their headers and codes, all
+/// lanes at once, one sibling a round.
+///
+/// # Safety
+///
+/// The processor must have AVX2; `word` and the levels as `step` has them
+/// (`Sections` addressing every level from `base`).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn v2_reference<const LOADS: bool>(
+    s: &Sections,
+    base: *const i32,
+    level: __m256i,
+    word: __m256i,
+    mask: __m256i,
+    rank: __m256i,
+    lanes: __m256i,
+) -> (__m256i, __m256i, __m256i) {
+    let zero = _mm256_setzero_si256();
+    let one = _mm256_set1_epi32(1);
+    let four = _mm256_set1_epi32(HEADER_BYTES as i32);
+    let ends = level_table(&s.v2_end);
+    let lens = level_table(&s.len);
+    let offsets = level_table(&s.offset);
+    let widths = [
+        level_table(&s.v2_width[0]),
+        level_table(&s.v2_width[1]),
+        level_table(&s.v2_width[2]),
+    ];
+    let w = [
+        by_level(&widths[0], level),
+        by_level(&widths[1], level),
+        by_level(&widths[2], level),
+    ];
+    let offset = by_level(&offsets, level);
+    let end = by_level(&ends, level);
+    // The 32 bits after the header: the codes.
+    let inside = lt_u32(word, end);
+    let mut slow = _mm256_andnot_si256(inside, lanes);
+    let mut live = _mm256_and_si256(inside, lanes);
+    // SAFETY: the lanes in `live` read four of the eight readable bytes at
+    // an offset below `end` (`Sections::v2_end`) of a level that `Sections`
+    // addresses from `base`; with `LOADS` the others read `base` itself
+    // (the start of a non-empty section).
+    let after = unsafe {
+        gather::<LOADS>(
+            zero,
+            base,
+            _mm256_add_epi32(offset, _mm256_add_epi32(word, four)),
+            live,
+        )
+    };
+    let (codes, count) = Avx2::v2_codes(mask, after);
+    let c = Avx2::v2_child(codes, count, mask, rank, w);
+    // The 64 bits holding the reference, from its first byte.
+    let byte = _mm256_add_epi32(word, _mm256_add_epi32(four, _mm256_srli_epi32::<3>(c.bit)));
+    let inside = lt_u32(byte, end);
+    // What the scalar decoding reads lies in the section (else it faults):
+    // the codes (2k + 2 bits) and the reference.
+    let len = by_level(&lens, level);
+    let codes_end = _mm256_add_epi32(
+        _mm256_add_epi32(word, four),
+        _mm256_srli_epi32::<3>(_mm256_add_epi32(
+            _mm256_slli_epi32::<1>(Avx2::popcount(mask)),
+            _mm256_set1_epi32(9),
+        )),
+    );
+    let reference_end = _mm256_add_epi32(
+        _mm256_add_epi32(word, four),
+        _mm256_srli_epi32::<3>(_mm256_add_epi32(
+            _mm256_add_epi32(c.bit, c.width),
+            _mm256_set1_epi32(7),
+        )),
+    );
+    let past = _mm256_or_si256(lt_u32(len, codes_end), lt_u32(len, reference_end));
+    let inside = _mm256_andnot_si256(past, inside);
+    slow = _mm256_or_si256(slow, _mm256_andnot_si256(inside, live));
+    live = _mm256_and_si256(inside, live);
+    // SAFETY: the lanes in `live` read the eight readable bytes at `byte`,
+    // below `end`; with `LOADS` the others those at `s.spare` (a leaf).
+    let (lo, hi) =
+        unsafe { gather_pair::<LOADS>(base, s.spare, _mm256_add_epi32(offset, byte), live) };
+    let (value, high) = Avx2::v2_value(
+        lo,
+        hi,
+        _mm256_and_si256(c.bit, _mm256_set1_epi32(7)),
+        c.width,
+    );
+    // A shared child: `target << 3 | r`; the base reference: `target`.
+    // Targets above 32 bits (the scalar decoding reads them as past the
+    // level) go to the scalar decoding.
+    let high_bits = _mm256_blendv_epi8(_mm256_srli_epi32::<3>(high), high, c.sequential);
+    let wide = _mm256_xor_si256(_mm256_cmpeq_epi32(high_bits, zero), _mm256_set1_epi32(-1));
+    slow = _mm256_or_si256(slow, _mm256_and_si256(wide, live));
+    live = _mm256_andnot_si256(wide, live);
+    let reflection =
+        _mm256_andnot_si256(c.sequential, _mm256_and_si256(value, _mm256_set1_epi32(7)));
+    let mut target = _mm256_blendv_epi8(
+        _mm256_or_si256(_mm256_srli_epi32::<3>(value), _mm256_slli_epi32::<29>(high)),
+        value,
+        c.sequential,
+    );
+    // Sequential children of the leaf level: leaf `base + index`.
+    let child_level = _mm256_add_epi32(level, one);
+    let to_leaf = _mm256_cmpeq_epi32(child_level, _mm256_set1_epi32(s.leaf_level));
+    let sequential = _mm256_and_si256(live, c.sequential);
+    let leaf = _mm256_and_si256(sequential, to_leaf);
+    let sum = _mm256_add_epi32(target, c.index);
+    // (A sum past 32 bits is past the level: the scalar decoding says so.)
+    let wraps = _mm256_and_si256(leaf, lt_u32(sum, target));
+    slow = _mm256_or_si256(slow, wraps);
+    target = blend(target, sum, _mm256_andnot_si256(wraps, leaf));
+    // Sequential children of a node level: the sizes of the siblings before.
+    let mut todo = _mm256_andnot_si256(
+        to_leaf,
+        _mm256_and_si256(sequential, _mm256_cmpgt_epi32(c.index, zero)),
+    );
+    if _mm256_movemask_ps(_mm256_castsi256_ps(todo)) != 0 {
+        let next_offset = by_level(&offsets, child_level);
+        let next_end = by_level(&ends, child_level);
+        let next_len = by_level(&lens, child_level);
+        let next_w = [
+            by_level(&widths[0], child_level),
+            by_level(&widths[1], child_level),
+            by_level(&widths[2], child_level),
+        ];
+        let mut round = zero;
+        loop {
+            let inside = lt_u32(target, next_end);
+            slow = _mm256_or_si256(slow, _mm256_andnot_si256(inside, todo));
+            todo = _mm256_and_si256(inside, todo);
+            if _mm256_movemask_ps(_mm256_castsi256_ps(todo)) == 0 {
+                break;
+            }
+            let at = _mm256_add_epi32(next_offset, target);
+            // SAFETY: the lanes in `todo` read the eight readable bytes at
+            // `target`, below `next_end`; with `LOADS` the others those at
+            // `s.spare` (a leaf).
+            let (header, after) = unsafe { gather_pair::<LOADS>(base, s.spare, at, todo) };
+            let sibling_mask = Avx2::child_mask(header);
+            // The header, and the codes (2k + 2 bits, none without
+            // children), lie in the section, as the scalar decoding needs.
+            let two_k = _mm256_slli_epi32::<1>(Avx2::popcount(sibling_mask));
+            let codes_bytes = _mm256_andnot_si256(
+                _mm256_cmpeq_epi32(two_k, zero),
+                _mm256_srli_epi32::<3>(_mm256_add_epi32(two_k, _mm256_set1_epi32(9))),
+            );
+            let past = lt_u32(
+                next_len,
+                _mm256_add_epi32(_mm256_add_epi32(target, four), codes_bytes),
+            );
+            slow = _mm256_or_si256(slow, _mm256_and_si256(past, todo));
+            todo = _mm256_andnot_si256(past, todo);
+            let (codes, count) = Avx2::v2_codes(sibling_mask, after);
+            let size = Avx2::v2_size(codes, count, next_w);
+            target = blend(target, _mm256_add_epi32(target, size), todo);
+            round = _mm256_add_epi32(round, one);
+            todo = _mm256_and_si256(todo, _mm256_cmpgt_epi32(c.index, round));
+        }
+    }
+    (target, reflection, slow)
 }
 
 /// The part of each lane's segment `[tmin, tmax]` inside a box whose lower and
@@ -1220,19 +1545,7 @@ unsafe fn gather<const LOADS: bool>(
         // SAFETY: the caller keeps the reads of the lanes in `lanes` readable.
         return unsafe { _mm256_mask_i32gather_epi32::<1>(src, base, offsets, lanes) };
     }
-    // The offsets two to a 64-bit word, out of the vector by register moves
-    // (a store and eight loads of the offsets took longer).
-    let at = _mm256_and_si256(offsets, lanes);
-    let (lo, hi) = (
-        _mm256_castsi256_si128(at),
-        _mm256_extracti128_si256::<1>(at),
-    );
-    let pairs = [
-        _mm_cvtsi128_si64(lo) as u64,
-        _mm_extract_epi64::<1>(lo) as u64,
-        _mm_cvtsi128_si64(hi) as u64,
-        _mm_extract_epi64::<1>(hi) as u64,
-    ];
+    let pairs = offset_pairs(_mm256_and_si256(offsets, lanes));
     let base: *const u8 = base.cast();
     // SAFETY: the caller keeps these four bytes readable: those of a lane in
     // `lanes`, or `base` itself for the others (their offsets are masked to 0).
@@ -1252,6 +1565,88 @@ unsafe fn gather<const LOADS: bool>(
         word(pairs[3] >> 32),
     );
     blend(src, words, lanes)
+}
+
+/// Eight lanes' offsets two to a 64-bit word (lane `2i` in the low half of
+/// word `i`), out of the vector by register moves (a store and eight loads
+/// of the offsets took longer): for the scalar loads of [`gather`] and
+/// [`gather_pair`].
+#[inline]
+#[target_feature(enable = "avx2")]
+fn offset_pairs(at: __m256i) -> [u64; 4] {
+    let (lo, hi) = (
+        _mm256_castsi256_si128(at),
+        _mm256_extracti128_si256::<1>(at),
+    );
+    [
+        _mm_cvtsi128_si64(lo) as u64,
+        _mm_extract_epi64::<1>(lo) as u64,
+        _mm_cvtsi128_si64(hi) as u64,
+        _mm_extract_epi64::<1>(hi) as u64,
+    ]
+}
+
+/// The 64 bits at byte offsets `offsets` from `base` in the lanes of
+/// `lanes` as their low and high 32 bits (0 in the other lanes): two
+/// [`gather`]s, or, where `LOADS`, eight 64-bit scalar loads put together.
+///
+/// # Safety
+///
+/// The processor must have AVX2. The eight bytes at `base + offset` must be
+/// readable for the offsets of the lanes in `lanes`, and, where `LOADS`, the
+/// eight bytes at `base + spare` (the other lanes load those).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn gather_pair<const LOADS: bool>(
+    base: *const i32,
+    spare: i32,
+    offsets: __m256i,
+    lanes: __m256i,
+) -> (__m256i, __m256i) {
+    let zero = _mm256_setzero_si256();
+    if !LOADS {
+        // SAFETY: the caller keeps the eight bytes of the lanes readable.
+        return unsafe {
+            (
+                gather::<false>(zero, base, offsets, lanes),
+                gather::<false>(
+                    zero,
+                    base,
+                    _mm256_add_epi32(offsets, _mm256_set1_epi32(4)),
+                    lanes,
+                ),
+            )
+        };
+    }
+    let pairs = offset_pairs(blend(_mm256_set1_epi32(spare), offsets, lanes));
+    let base: *const u8 = base.cast();
+    // SAFETY: the caller keeps these eight bytes readable: those of a lane in
+    // `lanes`, or `base + spare` for the others.
+    let word = |offset: u64| unsafe {
+        base.add(offset as u32 as usize)
+            .cast::<i64>()
+            .read_unaligned()
+    };
+    let first = _mm256_setr_epi64x(
+        word(pairs[0]),
+        word(pairs[0] >> 32),
+        word(pairs[1]),
+        word(pairs[1] >> 32),
+    );
+    let second = _mm256_setr_epi64x(
+        word(pairs[2]),
+        word(pairs[2] >> 32),
+        word(pairs[3]),
+        word(pairs[3] >> 32),
+    );
+    // The even (low) and odd (high) 32-bit halves, then back in lane order
+    // (the shuffle works within 128-bit halves).
+    let (a, b) = (_mm256_castsi256_ps(first), _mm256_castsi256_ps(second));
+    let low = _mm256_castps_si256(_mm256_shuffle_ps::<0b10_00_10_00>(a, b));
+    let high = _mm256_castps_si256(_mm256_shuffle_ps::<0b11_01_11_01>(a, b));
+    let low = _mm256_permute4x64_epi64::<0b11_01_10_00>(low);
+    let high = _mm256_permute4x64_epi64::<0b11_01_10_00>(high);
+    (_mm256_and_si256(low, lanes), _mm256_and_si256(high, lanes))
 }
 
 /// `a < b` as unsigned 32-bit integers.
@@ -1586,7 +1981,7 @@ unsafe fn step_wide<const LOADS: bool>(
     }
     // SAFETY: as in `step`: `out.frame_at` holds `256 * lane + 8 * level`
     // with `level < LEVEL_SLOTS` in every lane.
-    unsafe { out.write_back(tracer, s, g, slow_bits & choose_bits) }?;
+    unsafe { out.write_back::<false>(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
 }
 

@@ -406,8 +406,9 @@ pub struct Tracer<'a> {
     pub(crate) grid_scale: f64,
     /// Edge length in grid units of a cell of each level: 2^(D - level).
     pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
-    /// Whether the levels are format 2.0 (spec §23): traced by the scalar
-    /// steps only (the vector lanes and packets read 1.0 records).
+    /// Whether the levels are format 2.0 (spec §23): the walks carry the
+    /// accumulated reflection, the vector lanes run `simd::step`'s 2.0 copy
+    /// (eight lanes only).
     pub(crate) v2: bool,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
@@ -465,12 +466,37 @@ impl<'a> Tracer<'a> {
     /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
     /// offsets that errors of a malformed DAG report are inside the level
     /// section named (the tracer does not know where the sections lie in a
-    /// file). Batches are traced by the scalar steps (the vector lanes and
-    /// packets read 1.0 records only): see dagtrace/BENCHMARKS.md.
+    /// file). [`Tracer::from_v2`] makes the tracer of a 2.0 file. (The
+    /// vector lanes address all levels with 32-bit offsets from one base:
+    /// levels in separate allocations further apart than that leave the
+    /// batches to the scalar steps, with the same answers.)
     pub fn from_v2_levels(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
+    ) -> Result<Self, TraceError> {
+        Self::from_v2_parts(header, levels, colors, None)
+    }
+
+    /// The tracer of the 2.0 file `dag` ([`Tracer::from_v2_levels`] of its
+    /// levels, header and colours; knowing the whole file, the vector lanes
+    /// gather the records at the end of a level section with the bytes that
+    /// follow it, rather than read them one by one).
+    pub fn from_v2(dag: &dagfmt::Dag2<'a>) -> Result<Self, TraceError> {
+        Self::from_v2_parts(
+            dag.header(),
+            dag.levels(),
+            dag.color_table(),
+            Some(dag.bytes()),
+        )
+    }
+
+    /// [`Tracer::from_v2_levels`] of levels inside `file`, where known.
+    fn from_v2_parts(
+        header: &dagfmt::Header,
+        levels: &[dagfmt::v2::LevelView<'a>],
+        colors: Option<ColorTable<'a>>,
+        file: Option<&'a [u8]>,
     ) -> Result<Self, TraceError> {
         let malformed = |message: String| {
             TraceError::Malformed(FormatError::new(ErrorCode::BadLevelSections, 0, message))
@@ -491,7 +517,7 @@ impl<'a> Tracer<'a> {
         }
         let mut slots = [Level::default(); LEVEL_SLOTS];
         for (i, (slot, view)) in slots.iter_mut().zip(levels).enumerate() {
-            *slot = Level::new_v2(view, levels.get(i + 1))
+            *slot = Level::new_v2(view, levels.get(i + 1), file)
                 .map_err(|e| TraceError::Malformed(e.at_level(i as u8)))?;
         }
         let empty = levels.last().is_none_or(|l| l.bytes.is_empty());
@@ -530,7 +556,7 @@ impl<'a> Tracer<'a> {
             saturated: FxHashMap::default(),
             id: NEXT_TRACER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             compute_index: true,
-            packets: dag_bytes <= PACKET_MAX_DAG_BYTES && !v2,
+            packets: dag_bytes <= PACKET_MAX_DAG_BYTES,
             small: dag_bytes <= SMALL_DAG_BYTES,
             gather_loads: Gathers::Auto.loads(),
             wide_lanes: Lanes::Auto.wide(),
@@ -1505,6 +1531,7 @@ impl<'a> Tracer<'a> {
         &self,
         p: &Prepared,
         leaf: u32,
+        reflection: u8,
         pos: Vec3A,
         child: usize,
         planes: (Vec3A, Vec3A, Vec3A),
@@ -1512,7 +1539,8 @@ impl<'a> Tracer<'a> {
         let bits = self.levels[usize::from(self.leaf_level) & LEVEL_INDEX]
             .leaf(self.leaf_level, leaf)
             .map_err(|_| ())?;
-        let neg = p.neg;
+        // As in `brick`: a leaf reached with R is traced in octant `neg ^ R`.
+        let neg = (p.neg ^ usize::from(reflection)) & 7;
         let upper = CHILD_STEPS[child & 7].cmpgt(Vec3A::ZERO);
         let (t_lo, t_mid, t_hi) = planes;
         let t0 = Vec3A::select(upper, t_mid, t_lo);

@@ -399,7 +399,7 @@ fn queries_v2(
     seen_kinds: &mut [usize; 4],
 ) -> Vec<([u32; 4], [u32; 3])> {
     let decoders: Vec<Level> = (0..levels.len())
-        .map(|l| Level::new_v2(&levels[l], levels.get(l + 1)).expect("valid levels"))
+        .map(|l| Level::new_v2(&levels[l], levels.get(l + 1), None).expect("valid levels"))
         .collect();
     let leaf_level = (levels.len() - 1) as u8;
     let mut records = Vec::new();

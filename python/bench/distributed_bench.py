@@ -273,16 +273,14 @@ def cmd_model(a) -> dict:
     u = statistics.median(s["cpu_seconds"] / s["seconds"] for s in singles)
     base = d["runs"]["1"]
     # Region build times alone on one worker (parse excluded), median over repeats.
+    # (The records are in Morton order, Dask's submission order.)
     names = [r["region"] for r in base[0]["regions"]]
-    order = sorted(range(len(names)), key=lambda i: base[0]["regions"][i]["region"])
     r_alone = {n: statistics.median(run["regions"][i]["seconds"] - run["regions"][i]["parse_seconds"]
                                     for run in base) for i, n in enumerate(names)}
     parse = statistics.median(max(r["parse_seconds"] for r in run["regions"]) for run in base)
     merges = [m for runs in d["runs"].values() for run in runs for m in run["merges"]]
     m0, beta = fit_line([m["input_bytes"] for m in merges], [m["wall_seconds"] for m in merges])
-    # Morton (submission) order of the regions: the index order of the record.
     by_index = [r_alone[n] for n in names]
-    del order
 
     def predict(w: int, cores: float, regions: list[float], merges_: list[dict], bandwidth: float) -> dict:
         f = max(1.0, w * u / cores) if cores else 1.0

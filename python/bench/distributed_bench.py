@@ -247,7 +247,8 @@ def fit_line(xs: list[float], ys: list[float]) -> tuple[float, float]:
     mx, my = sum(xs) / n, sum(ys) / n
     sxx = sum((x - mx) ** 2 for x in xs)
     if sxx == 0:
-        return my, 0.0
+        # One size of merge only: the cost taken as proportional to the bytes.
+        return 0.0, my / mx if mx else 0.0
     b = sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx
     return my - b * mx, b
 
@@ -325,17 +326,17 @@ def cmd_model(a) -> dict:
             R = max(total_r * g / w, largest)
             # The merge tree: k levels of fan-in 8; the level j below the top
             # reads about the parts' bytes / 8^j in one merge.
-            level_bytes = [part_bytes * g / 8 ** j for j in range(k)]
+            level_bytes = [part_bytes * a.byte_growth ** (depth - depth0) / 8 ** j for j in range(k)]
             M = sum(m0 + beta * b for b in level_bytes)
             X = sum(level_bytes) / a.bandwidth
             proj[f"d{depth} W={w}"] = {
                 "regions": n, "region_level": k, "P": parse, "R": R, "M": M, "X": X, "c": c,
-                "seconds": parse + R + M + X + c, "output_bytes": out_bytes * g,
+                "seconds": parse + R + M + X + c, "output_bytes": out_bytes * a.byte_growth ** (depth - depth0),
             }
     return {
         "input": d["input"], "depth": depth0, "u_cores_per_build": u, "parse_seconds": parse,
         "region_seconds_total": total_r, "region_seconds_max": r_max, "merge_m0": m0, "merge_beta_s_per_byte": beta,
-        "c": c, "growth_per_level": growth, "bandwidth": a.bandwidth, "cores": a.cores,
+        "c": c, "growth_per_level": growth, "byte_growth_per_level": a.byte_growth, "bandwidth": a.bandwidth, "cores": a.cores,
         "check": check, "projections": proj, "single_median_seconds": statistics.median(s["seconds"] for s in singles),
     }
 
@@ -364,7 +365,9 @@ def main() -> None:
     p.add_argument("results", nargs="+")
     p.add_argument("--bandwidth", type=float, default=1e9, help="bytes/s between workers and the shared storage")
     p.add_argument("--cores", type=float, default=os.cpu_count())
-    p.add_argument("--growth", type=float, default=4.0, help="work and bytes per depth level")
+    p.add_argument("--growth", type=float, default=4.0, help="region work per depth level (a surface: 4)")
+    p.add_argument("--byte-growth", type=float, default=2.92,
+                   help="file bytes per depth level (the dragon: 172 MB at d14, 1.47 GB at d16)")
     p.add_argument("--json")
     a = ap.parse_args()
     res = {"overhead": cmd_overhead, "scaling": cmd_scaling, "model": cmd_model}[a.cmd](a)

@@ -4,6 +4,7 @@ use std::fmt::Write as _;
 use std::io::IsTerminal;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use dagfmt::assemble::{FileHeader, FileLayout};
@@ -129,6 +130,60 @@ pub struct ConvertOptions {
     /// Told how the conversion proceeds, for callers without a terminal
     /// (the Python package's `progress` callable); `None`: nobody is.
     pub progress_hook: Option<ProgressHook>,
+    /// Keep a mesh input in memory after the conversion, for the next one of
+    /// the same file in this process (the region builds a worker process
+    /// runs one after another: the file is parsed once per process, not once
+    /// per region). See [`clear_input_cache`].
+    pub cache_input: bool,
+}
+
+/// The mesh kept by a conversion with [`ConvertOptions::cache_input`]: the
+/// file it was read from (path, size, modification time), whether colours
+/// were read, and the mesh.
+type CachedMesh = (PathBuf, u64, Option<std::time::SystemTime>, bool, Arc<Mesh>);
+
+static MESH_CACHE: Mutex<Option<CachedMesh>> = Mutex::new(None);
+
+/// Frees the mesh kept by conversions with [`ConvertOptions::cache_input`];
+/// returns whether one was kept.
+pub fn clear_input_cache() -> bool {
+    MESH_CACHE
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .take()
+        .is_some()
+}
+
+/// The mesh of `path`: the cached one when the file (path, size and
+/// modification time) and `colors` are those it was read with, else `load`'s,
+/// which then replaces it. The lock is held while loading, so that threads
+/// converting regions of one file at once parse it once.
+fn cached_mesh(
+    path: &Path,
+    colors: bool,
+    load: impl FnOnce() -> Result<Mesh, ConvertError>,
+) -> Result<Arc<Mesh>, ConvertError> {
+    let meta = std::fs::metadata(path)
+        .map_err(|e| ConvertError::io(format!("cannot open input {}", path.display()), e))?;
+    let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+    let (len, modified) = (meta.len(), meta.modified().ok());
+    let mut cache = MESH_CACHE
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    if let Some((p, l, m, c, mesh)) = cache.as_ref()
+        && *p == path
+        && *l == len
+        && *m == modified
+        && modified.is_some()
+        && *c == colors
+    {
+        return Ok(Arc::clone(mesh));
+    }
+    // The old mesh goes before the new one is read.
+    *cache = None;
+    let mesh = Arc::new(load()?);
+    *cache = Some((path, len, modified, colors, Arc::clone(&mesh)));
+    Ok(mesh)
 }
 
 /// A step of a conversion, as [`ProgressHook`] is told it.
@@ -250,6 +305,7 @@ impl ConvertOptions {
             region: None,
             extra_inputs: Vec::new(),
             progress_hook: None,
+            cache_input: false,
         }
     }
 }
@@ -291,6 +347,10 @@ pub struct ConvertSummary {
     pub file_bytes: u64,
     /// Seconds spent loading the input.
     pub load_seconds: f64,
+    /// Seconds reading and parsing the input (meshes; part of `load_seconds`).
+    pub parse_seconds: f64,
+    /// Seconds binning triangles into chunks (meshes; part of `load_seconds`).
+    pub bin_seconds: f64,
     /// Seconds spent voxelizing and building.
     pub build_seconds: f64,
     /// Seconds spent writing.
@@ -387,8 +447,19 @@ impl ConvertSummary {
         }
         let _ = writeln!(
             s,
-            "time:     {:.2} s (load {:.2} s, voxelize and build {:.2} s, write {:.2} s)",
-            self.total_seconds, self.load_seconds, self.build_seconds, self.write_seconds
+            "time:     {:.2} s (load {:.2} s{}, voxelize and build {:.2} s, write {:.2} s)",
+            self.total_seconds,
+            self.load_seconds,
+            if self.chunk_side > 0 {
+                format!(
+                    ": parse {:.2} s, bin {:.2} s",
+                    self.parse_seconds, self.bin_seconds
+                )
+            } else {
+                String::new()
+            },
+            self.build_seconds,
+            self.write_seconds
         );
         if self.spill.runs == 0 {
             let _ = writeln!(
@@ -657,14 +728,21 @@ fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
                     // Formats that are meshes whatever their content load after
                     // the command line's checks.
                     "obj" | "stl" | "gltf" | "glb" => {
-                        convert_mesh(opts, limit, &scratch, || match open()? {
+                        let load = || match open()? {
                             crate::input::Input::Mesh(m) => Ok(*m),
                             _ => Err(ConvertError::Input("not a mesh".into())),
+                        };
+                        convert_mesh(opts, limit, &scratch, || {
+                            if opts.cache_input {
+                                cached_mesh(&opts.input, opts.colors, load)
+                            } else {
+                                load().map(Arc::new)
+                            }
                         })?
                     }
                     _ => match open()? {
                         crate::input::Input::Mesh(m) => {
-                            convert_mesh(opts, limit, &scratch, || Ok(*m))?
+                            convert_mesh(opts, limit, &scratch, || Ok(Arc::new(*m)))?
                         }
                         crate::input::Input::Points(points) => {
                             convert_points(opts, limit, &scratch, points)?
@@ -1075,7 +1153,7 @@ fn convert_mesh(
     opts: &ConvertOptions,
     limit: u64,
     scratch: &Scratch,
-    load: impl FnOnce() -> Result<Mesh, ConvertError>,
+    load: impl FnOnce() -> Result<Arc<Mesh>, ConvertError>,
 ) -> Result<ConvertSummary, ConvertError> {
     let depth = opts.depth.ok_or_else(|| {
         ConvertError::Usage("converting a mesh needs --depth D or --resolution N".into())
@@ -1104,6 +1182,7 @@ fn convert_mesh(
     spill_settings(opts, depth, 0)?;
     let t = Instant::now();
     let mesh = load()?;
+    let parse_seconds = t.elapsed().as_secs_f64();
     if mesh.triangles.is_empty() {
         // An empty volume (spec/VDAG.md § 7), not an error: a tile of a larger
         // scene is often empty.
@@ -1199,12 +1278,18 @@ fn convert_mesh(
         }
     );
     let kept = kept_codes(opts, depth)?;
-    let mut bins = Bins::new(&snapped, depth, chunk_bits);
+    let t_bin = Instant::now();
+    // A surface chunk's voxels depend on its triangles only: a region bins
+    // the triangles into the chunks of its cell alone and voxelizes those.
+    // (The solid fill carries parity from chunk to chunk, so it bins and
+    // voxelizes every chunk and keeps the region's bricks below.)
+    let within = match (opts.region, solid) {
+        (Some(r), SolidMode::Surface) => Some(region_chunks(r, depth, chunk_bits)),
+        _ => None,
+    };
+    let mut bins = Bins::new_within(&snapped, depth, chunk_bits, within);
     if let (Some(k), SolidMode::Surface) = (&kept, solid) {
-        // A surface chunk's voxels depend on its triangles only: a region
-        // voxelizes the chunks that meet it. (The solid fill carries parity
-        // from chunk to chunk, so it voxelizes every chunk and keeps the
-        // region's bricks below.)
+        // Every chunk of the box meets the cell; this keeps that so.
         bins.retain(|code| {
             let first = code << (3 * chunk_bits);
             first < k.end && first + (1 << (3 * chunk_bits)) > k.start
@@ -1212,6 +1297,8 @@ fn convert_mesh(
     }
     let kept_bricks = kept.map(|k| (k.start >> 6)..(k.end >> 6));
     summary.bin_entries = bins.len() as u64;
+    summary.bin_seconds = t_bin.elapsed().as_secs_f64();
+    summary.parse_seconds = parse_seconds;
     summary.load_seconds = t.elapsed().as_secs_f64();
     check_memory(limit, "binning triangles")?;
 
@@ -1381,6 +1468,22 @@ fn convert_mesh(
     Ok(summary)
 }
 
+/// The chunks (inclusive chunk coordinates, chunks of `2^chunk_bits`
+/// voxels) that meet the cell of `region` at depth `depth`: the cell's
+/// chunks, or the one chunk holding a cell smaller than a chunk.
+fn region_chunks(region: Region, depth: u8, chunk_bits: u32) -> ([i64; 3], [i64; 3]) {
+    let levels = u32::from(depth) - chunk_bits;
+    let k = u32::from(region.level);
+    let cell = region.cell.map(i64::from);
+    if k <= levels {
+        let s = levels - k;
+        (cell.map(|c| c << s), cell.map(|c| ((c + 1) << s) - 1))
+    } else {
+        let c = cell.map(|c| c >> (k - levels));
+        (c, c)
+    }
+}
+
 /// Feeds sorted (code, colour) voxels to the DAG builder and, with colours,
 /// the colour sink; returns the finished DAG and colours.
 fn build_sorted(
@@ -1522,6 +1625,7 @@ fn convert_points(
         colored,
     )?;
     let mut sorter = VoxelSorter::new(scratch, sort_bytes);
+    let kept = kept_codes(opts, depth)?;
     let mut read = 0u64;
     let mut outside = 0u64;
     let mut codes: Vec<Vec<(u64, u32)>> = Vec::new();
@@ -1555,9 +1659,12 @@ fn convert_points(
                 outside += missed;
                 codes.push(out);
             });
+        // A region sorts only its cell's voxels (the build keeps no other).
         for part in &codes {
             for &(code, rgba) in part {
-                sorter.push(code, rgba)?;
+                if kept.as_ref().is_none_or(|k| k.contains(&code)) {
+                    sorter.push(code, rgba)?;
+                }
             }
         }
     }

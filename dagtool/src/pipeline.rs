@@ -83,15 +83,33 @@ impl Bins {
     /// Bins every triangle of `mesh` into the chunks of side `2^bits` voxels
     /// whose closed cube it intersects.
     pub fn new(mesh: &SnappedMesh, depth: u8, bits: u32) -> Bins {
+        Bins::new_within(mesh, depth, bits, None)
+    }
+
+    /// Bins the triangles of `mesh` into the chunks of side `2^bits` voxels
+    /// whose closed cube they intersect, only for the chunks of the box
+    /// `within` (inclusive chunk coordinates; `None`: every chunk). The bins
+    /// are exactly those of [`Bins::new`] for the chunks of the box: a
+    /// triangle's chunks are clipped to the box before the exact test, and a
+    /// triangle whose bounding box misses the box costs a comparison.
+    pub fn new_within(
+        mesh: &SnappedMesh,
+        depth: u8,
+        bits: u32,
+        within: Option<([i64; 3], [i64; 3])>,
+    ) -> Bins {
         let levels = u32::from(depth) - bits;
         let last = (1i64 << levels) - 1;
+        let (lo, hi) = within.map_or(([0; 3], [last; 3]), |(lo, hi)| {
+            (lo.map(|c| c.max(0)), hi.map(|c| c.min(last)))
+        });
         let s = SUBVOXEL << bits;
         let mut pairs: Vec<(u64, u32)> = (0..mesh.triangles.len() as u32)
             .into_par_iter()
             .with_min_len(1024)
             .fold(Vec::new, |mut out, t| {
                 let tri = mesh.triangle(t);
-                rasterize_triangle(&tri, s, [0; 3], [last; 3], &mut |c: [i64; 3]| {
+                rasterize_triangle(&tri, s, lo, hi, &mut |c: [i64; 3]| {
                     out.push((
                         dagfmt::morton::encode(c[0] as u32, c[1] as u32, c[2] as u32),
                         t,

@@ -18,6 +18,7 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(convert_region, m)?)?;
     m.add_function(wrap_pyfunction!(merge, m)?)?;
     m.add_function(wrap_pyfunction!(regions, m)?)?;
+    m.add_function(wrap_pyfunction!(clear_input_cache, m)?)?;
     Ok(())
 }
 
@@ -72,10 +73,16 @@ fn region_error(py: Python<'_>, e: &ConvertError) -> PyErr {
 /// tiles read as one (only the tiles whose header bounds meet the cell are
 /// read). `bounds` `(xmin, ymin, zmin, size)` is
 /// required, so that every part has the same root cube. Returns a dict
-/// (`region`, `index`, `voxels`, `file_bytes`, `seconds`, `peak_rss`).
+/// (`region`, `index`, `voxels`, `file_bytes`, `seconds`, and where the
+/// time went: `parse_seconds`, `bin_seconds` (meshes), `load_seconds` (all
+/// before voxelizing), `build_seconds`, `write_seconds`; `peak_rss`).
+/// With `cache_input` (the default) a mesh input stays in this process's
+/// memory for the next region of the same file (same path, size and
+/// modification time): a worker parses it once, not once per region;
+/// `clear_input_cache()` frees it.
 /// Raises `vdag.ConvertError` (nothing written) when it fails.
 #[pyfunction]
-#[pyo3(signature = (input, output, depth, region, *, bounds, colors = false, solid = false, color_error = None, memory_limit = None, point_radius = 0.0, force = false, tmp_dir = None))]
+#[pyo3(signature = (input, output, depth, region, *, bounds, colors = false, solid = false, color_error = None, memory_limit = None, point_radius = 0.0, force = false, tmp_dir = None, cache_input = true))]
 #[allow(clippy::too_many_arguments)]
 pub fn convert_region<'py>(
     py: Python<'py>,
@@ -91,6 +98,7 @@ pub fn convert_region<'py>(
     point_radius: f64,
     force: bool,
     tmp_dir: Option<PathBuf>,
+    cache_input: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let region = match region {
         RegionArg::Text(t) => Region::parse(&t),
@@ -116,6 +124,7 @@ pub fn convert_region<'py>(
     opts.point_radius = point_radius;
     opts.force = force;
     opts.tmp_dir = tmp_dir;
+    opts.cache_input = cache_input;
     let summary = py
         .detach(|| dagtool::convert::convert(&opts))
         .map_err(|e| region_error(py, &e))?;
@@ -125,6 +134,11 @@ pub fn convert_region<'py>(
     d.set_item("voxels", summary.voxels)?;
     d.set_item("file_bytes", summary.file_bytes)?;
     d.set_item("seconds", summary.total_seconds)?;
+    d.set_item("parse_seconds", summary.parse_seconds)?;
+    d.set_item("bin_seconds", summary.bin_seconds)?;
+    d.set_item("load_seconds", summary.load_seconds)?;
+    d.set_item("build_seconds", summary.build_seconds)?;
+    d.set_item("write_seconds", summary.write_seconds)?;
     d.set_item("peak_rss", summary.peak_rss)?;
     Ok(d)
 }
@@ -178,4 +192,11 @@ pub fn regions(level: u8) -> PyResult<Vec<(u8, u32, u32, u32)>> {
     Ok(Region::all(level)
         .map(|r| (r.level, r.cell[0], r.cell[1], r.cell[2]))
         .collect())
+}
+
+/// Frees the mesh `convert_region` keeps in this process (`cache_input`);
+/// returns whether one was kept.
+#[pyfunction]
+pub fn clear_input_cache() -> bool {
+    dagtool::convert::clear_input_cache()
 }

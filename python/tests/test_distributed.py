@@ -62,9 +62,27 @@ def test_mesh_is_byte_identical(client, tmp_path, sphere_obj, dagtool):
     summary = vdag.distributed.convert(sphere_obj, out, 7, client, region_level=1, bounds=BOUNDS)
     assert out.read_bytes() == want
     assert len(summary["regions"]) == 8 and sum(r["voxels"] for r in summary["regions"]) == summary["voxels"]
+    # Where each region's time went, and which worker ran it.
+    assert all("parse_seconds" in r and "build_seconds" in r and r["worker"] for r in summary["regions"])
+    assert all(m["worker"] and m["input_bytes"] > 0 for m in summary["merges"])
     assert summary["merges"] and summary["merges"][-1]["cells"] == (0, 8)
     # Nothing is left of the parts.
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cli.vdag", "dask.vdag"]
+
+
+def test_region_builds_keep_the_mesh_for_the_next_region(tmp_path, sphere_obj):
+    # A process parses a mesh once for all its regions (cache_input); the
+    # parts are those of builds without the cache, and the cache is freed.
+    vdag.clear_input_cache()
+    first = vdag.convert_region(sphere_obj, tmp_path / "a.part", 6, "1:0,0,0", bounds=BOUNDS)
+    for key in ("parse_seconds", "bin_seconds", "load_seconds", "build_seconds", "write_seconds"):
+        assert 0 <= first[key] <= first["seconds"], key
+    cached = vdag.convert_region(sphere_obj, tmp_path / "b.part", 6, "1:1,1,1", bounds=BOUNDS)
+    fresh = vdag.convert_region(sphere_obj, tmp_path / "c.part", 6, "1:1,1,1", bounds=BOUNDS, cache_input=False)
+    assert cached["voxels"] == fresh["voxels"] > 0
+    assert (tmp_path / "b.part").read_bytes() == (tmp_path / "c.part").read_bytes()
+    assert vdag.clear_input_cache() is True
+    assert vdag.clear_input_cache() is False
 
 
 def test_coloured_mesh_is_byte_identical(client, tmp_path, sphere_obj, dagtool):

@@ -5,6 +5,7 @@ from ._vdag import (
     TraceResult as TraceResult,
     VoxelChunks as VoxelChunks,
     __version__ as __version__,
+    clear_input_cache as clear_input_cache,
     convert as convert,
     convert_region as convert_region,
     merge as merge,

@@ -188,10 +188,17 @@ def convert_region(
     point_radius: float = 0.0,
     force: bool = False,
     tmp_dir: Optional[_Path] = None,
+    cache_input: bool = True,
 ) -> dict[str, Any]:
     """dagtool convert --region: one cell ("K:X,Y,Z" or (K, X, Y, Z)) of the
     root cube into a part (spec §24); input may be a list of point-cloud
-    tiles read as one."""
+    tiles read as one. With cache_input a mesh stays in this process for the
+    next region of the same file (clear_input_cache frees it). The dict
+    gives where the time went: parse_seconds, bin_seconds, load_seconds,
+    build_seconds, write_seconds, seconds."""
+
+def clear_input_cache() -> bool:
+    """Frees the mesh convert_region keeps in this process; whether one was kept."""
 
 def merge(
     parts: Sequence[_Path],

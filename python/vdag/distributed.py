@@ -18,6 +18,12 @@ The input, the output's directory and ``scratch`` must be paths every worker
 sees (a shared file system). Parts go to ``scratch`` (default: a new
 directory beside the output), which is removed at the end.
 
+Each worker process parses a mesh input once and keeps it for the next
+region it builds (:func:`vdag.convert_region`'s ``cache_input``); a region
+then bins and voxelizes only the triangles of its own cell, so the regions
+together do the work of one build. The workers free the mesh when the job
+ends.
+
 A region task that fails for a reason of the input (a bad file, an
 impossible option) is not retried: :func:`convert` raises one
 ``vdag.ConvertError`` naming the region. A worker that dies (killed, out of
@@ -35,6 +41,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -62,6 +70,19 @@ def _error_value(region: str, e: BaseException) -> dict[str, Any]:
     }
 
 
+def _where() -> dict[str, Any]:
+    """The worker process a task ran in, and that process's peak resident
+    bytes so far (a worker's peak is the largest over its tasks)."""
+    try:
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        peak *= 1 if sys.platform == "darwin" else 1024  # bytes there, KiB on Linux
+    except (ImportError, OSError):  # Windows
+        peak = None
+    return {"worker": f"{socket.gethostname()}:{os.getpid()}", "peak_rss": peak}
+
+
 def _build_region(
     inputs: list[str],
     part: str,
@@ -82,9 +103,15 @@ def _build_region(
         info = _vdag.convert_region(source, part, depth, region, force=True, **options)
         info["wall_seconds"] = time.perf_counter() - t
         info["part"] = part
+        info.update(_where())
         return info
     except Exception as e:  # noqa: BLE001 - every failure becomes one clear error
         return _error_value(name, e)
+
+
+def _clear_cache() -> bool:
+    """A worker's task: free the mesh its region builds kept."""
+    return _vdag.clear_input_cache()
 
 
 def _merge(infos: list[dict[str, Any]], out: str, memory_limit) -> dict[str, Any]:
@@ -100,8 +127,12 @@ def _merge(infos: list[dict[str, Any]], out: str, memory_limit) -> dict[str, Any
         info["part"] = out
         info["wall_seconds"] = time.perf_counter() - t
         info["inputs"] = len(infos)
+        info.update(_where())
         info["merges"] = [m for i in infos for m in i.get("merges", [])] + [
-            {k: info[k] for k in ("wall_seconds", "input_bytes", "file_bytes", "inputs", "cells")}
+            {
+                k: info[k]
+                for k in ("wall_seconds", "input_bytes", "file_bytes", "inputs", "cells", "worker", "peak_rss")
+            }
         ]
         info["regions"] = [r for i in infos for r in i.get("regions", [i] if "region" in i else [])]
         return info
@@ -131,7 +162,9 @@ def convert(
     workers, split into the ``8**region_level`` cells of level
     ``region_level`` (at most ``depth - 2``), and returns a summary dict:
     ``voxels``, ``file_bytes``, ``seconds``, ``regions`` (one dict per
-    region: ``region``, ``voxels``, ``file_bytes``, ``seconds``)
+    region: ``region``, ``voxels``, ``file_bytes``, ``seconds`` and its
+    parts ``parse_seconds``, ``bin_seconds``, ``build_seconds``,
+    ``write_seconds``; ``wall_seconds``, ``worker``, ``peak_rss``)
     and ``merges`` (one dict per merge step: ``wall_seconds``,
     ``input_bytes``, ``file_bytes``, ``inputs``, ``cells``).
 
@@ -202,6 +235,12 @@ def convert(
     finally:
         if own_scratch:
             shutil.rmtree(scratch, ignore_errors=True)
+        try:
+            # The workers parsed the mesh once each and kept it for their
+            # next region (convert_region's cache_input); free it now.
+            client.run(_clear_cache)
+        except Exception:  # noqa: BLE001 - a worker that is gone holds nothing
+            pass
     if "error" in info:
         raise _error(info["error"], info.get("kind") or "input", info.get("code"))
     if not info.get("complete"):

@@ -146,6 +146,75 @@ fn merged_regions_are_the_whole_mesh_build() {
 }
 
 #[test]
+fn regions_of_many_chunks_bin_only_their_own_triangles() {
+    // Cells of several chunks per axis: a region bins the triangles into
+    // its own chunks only (the others are never voxelized), and the merge is
+    // still the whole build, colours included.
+    let dir = tempfile::tempdir().unwrap();
+    let obj = two_colour_mesh(dir.path());
+    let mut base = options(&obj, &dir.path().join("whole.vdag"), 8, "-1,-1,-1,2");
+    base.chunk_bits = Some(3);
+    base.colors = true;
+    base.force = true;
+    check_identity(&base, 1, "coloured mesh, 4^3 chunks per level-1 cell");
+    base.output = dir.path().join("whole-2.vdag");
+    let parts = check_identity(&base, 2, "coloured mesh, 2^3 chunks per level-2 cell");
+    // The work summed over the regions is the whole build's: every chunk
+    // with triangles is binned by exactly one region.
+    let whole = convert(&base).unwrap();
+    let mut entries = 0;
+    let mut chunks = 0;
+    for r in Region::all(2) {
+        let mut o = base.clone();
+        o.output = dir.path().join("again.vdag");
+        o.force = true;
+        o.region = Some(r);
+        let s = convert(&o).unwrap();
+        entries += s.bin_entries;
+        chunks += s.surface_chunks;
+    }
+    assert_eq!(parts.len(), 64);
+    assert_eq!(entries, whole.bin_entries);
+    assert_eq!(chunks, whole.surface_chunks);
+}
+
+#[test]
+fn a_cached_mesh_is_read_again_when_its_file_changes() {
+    // cache_input keeps the parsed mesh for the next conversion of the same
+    // file; another file, or the same path rewritten, is parsed afresh.
+    let dir = tempfile::tempdir().unwrap();
+    let obj = dir.path().join("cached.obj");
+    let fresh = |o: &ConvertOptions| {
+        let mut o = o.clone();
+        o.cache_input = false;
+        o.output = dir.path().join("fresh.vdag");
+        o.force = true;
+        convert(&o).unwrap();
+        std::fs::read(&o.output).unwrap()
+    };
+    for (i, (centre, radius)) in [([0.1, -0.2, 0.05], 0.7), ([-0.3, 0.2, 0.1], 0.5)]
+        .into_iter()
+        .enumerate()
+    {
+        sphere_mesh(centre, radius, 2).write(&obj);
+        let mut o = options(&obj, &dir.path().join("cached.vdag"), 7, "-1,-1,-1,2");
+        o.cache_input = true;
+        o.force = true;
+        for r in [None, Some(Region::parse("1:0,0,0").unwrap())] {
+            o.region = r;
+            // Twice: the second conversion reads the mesh kept by the first.
+            for _ in 0..2 {
+                convert(&o).unwrap();
+                assert!(
+                    std::fs::read(&o.output).unwrap() == fresh(&o),
+                    "sphere {i}, region {r:?}: the cached mesh gave another file"
+                );
+            }
+        }
+    }
+}
+
+#[test]
 fn merged_regions_keep_colours_raw_and_packed() {
     let dir = tempfile::tempdir().unwrap();
     let obj = two_colour_mesh(dir.path());

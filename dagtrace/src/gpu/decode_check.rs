@@ -347,32 +347,8 @@ fn wgsl_decoding_reads_nodes_and_leaves_as_the_cpu_does() {
         checked += check(&ctx, &mut pipelines, (&name, &bytes), false, &mut rng);
     }
     let mut widths = HashSet::new();
-    for (depth, voxels, clusters) in [
-        (5u8, 60, 2),
-        (8, 4_000, 6),
-        (10, 60_000, 20),
-        (12, 150_000, 0),
-    ] {
-        let side = 1u64 << depth;
-        let points: Vec<[u32; 3]> = if clusters == 0 {
-            (0..voxels)
-                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
-                .collect()
-        } else {
-            let centres: Vec<[u64; 3]> = (0..clusters)
-                .map(|_| [0; 3].map(|_| rng.next() % side))
-                .collect();
-            (0..voxels)
-                .map(|i| {
-                    let c = centres[i % clusters];
-                    let spread = side / 8 + 1;
-                    c.map(|v| ((v + rng.next() % spread).min(side - 1)) as u32)
-                })
-                .collect()
-        };
-        let bytes = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, points)
-            .expect("valid voxels")
-            .to_bytes();
+    for (depth, voxels, clusters) in RANDOM_DAGS {
+        let bytes = random_dag(depth, voxels, clusters, &mut rng);
         let dag = Dag::open(&bytes).expect("built DAG opens");
         widths.extend(
             dag.levels()
@@ -556,32 +532,8 @@ fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
         );
     }
     let mut widths = HashSet::new();
-    for (depth, voxels, clusters) in [
-        (5u8, 60, 2),
-        (8, 4_000, 6),
-        (10, 60_000, 20),
-        (12, 150_000, 0),
-    ] {
-        let side = 1u64 << depth;
-        let points: Vec<[u32; 3]> = if clusters == 0 {
-            (0..voxels)
-                .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
-                .collect()
-        } else {
-            let centres: Vec<[u64; 3]> = (0..clusters)
-                .map(|_| [0; 3].map(|_| rng.next() % side))
-                .collect();
-            (0..voxels)
-                .map(|i| {
-                    let c = centres[i % clusters];
-                    let spread = side / 8 + 1;
-                    c.map(|v| ((v + rng.next() % spread).min(side - 1)) as u32)
-                })
-                .collect()
-        };
-        let bytes = DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, points)
-            .expect("valid voxels")
-            .to_bytes();
+    for (depth, voxels, clusters) in RANDOM_DAGS {
+        let bytes = random_dag(depth, voxels, clusters, &mut rng);
         let upgraded = upgrade(&Dag::open(&bytes).expect("built DAG opens")).expect("upgrade");
         let dag = Dag2::open(&upgraded).expect("upgraded DAG opens");
         widths.extend(dag.levels().iter().filter(|l| !l.is_leaf).map(|l| l.widths));
@@ -598,4 +550,38 @@ fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
     println!("{checked} 2.0 records decoded alike; kinds {kinds:?}; widths {widths:?}");
     assert!(kinds.iter().all(|&n| n > 0), "kinds of children {kinds:?}");
     assert!(widths.len() >= 3, "widths {widths:?}");
+}
+
+/// The random DAGs both checks decode: (depth, voxels, clusters), uniform
+/// when `clusters` is 0.
+const RANDOM_DAGS: [(u8, usize, usize); 4] = [
+    (5, 60, 2),
+    (8, 4_000, 6),
+    (10, 60_000, 20),
+    (12, 150_000, 0),
+];
+
+/// A 1.0 file of `voxels` random voxels at `depth`, uniform or around
+/// `clusters` random centres (so that some subtrees repeat and some do not).
+fn random_dag(depth: u8, voxels: usize, clusters: usize, rng: &mut Rng) -> Vec<u8> {
+    let side = 1u64 << depth;
+    let points: Vec<[u32; 3]> = if clusters == 0 {
+        (0..voxels)
+            .map(|_| [0; 3].map(|_| (rng.next() % side) as u32))
+            .collect()
+    } else {
+        let centres: Vec<[u64; 3]> = (0..clusters)
+            .map(|_| [0; 3].map(|_| rng.next() % side))
+            .collect();
+        (0..voxels)
+            .map(|i| {
+                let c = centres[i % clusters];
+                let spread = side / 8 + 1;
+                c.map(|v| ((v + rng.next() % spread).min(side - 1)) as u32)
+            })
+            .collect()
+    };
+    DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, points)
+        .expect("valid voxels")
+        .to_bytes()
 }

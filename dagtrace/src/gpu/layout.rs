@@ -429,23 +429,29 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
     s.push_str(
         "// Word `a` of the DAG's address space (levels, then the saturated-count table).\n",
     );
-    s.push_str("fn load_word(a: u32) -> u32 {\n");
-    if config.pages == 1 {
-        s.push_str("    return page0[a];\n");
+    push_paged_load(&mut s, "load_word", "page", config.pages, config.page_shift);
+    s
+}
+
+/// Writes the WGSL function `name(a: u32) -> u32` that loads word `a` of an
+/// address space split into `pages` bindings `{array}0`, `{array}1`, … of
+/// `2^page_shift` words each (0 past the last page).
+fn push_paged_load(s: &mut String, name: &str, array: &str, pages: u32, page_shift: u32) {
+    let _ = writeln!(s, "fn {name}(a: u32) -> u32 {{");
+    if pages == 1 {
+        let _ = writeln!(s, "    return {array}0[a];");
     } else {
-        let _ = writeln!(
-            s,
-            "    let offset = a & {}u;",
-            (1u32 << config.page_shift) - 1
-        );
-        let _ = writeln!(s, "    switch (a >> {}u) {{", config.page_shift);
-        for page in 0..config.pages {
-            let _ = writeln!(s, "        case {page}u: {{ return page{page}[offset]; }}");
+        let _ = writeln!(s, "    let offset = a & {}u;", (1u32 << page_shift) - 1);
+        let _ = writeln!(s, "    switch (a >> {page_shift}u) {{");
+        for page in 0..pages {
+            let _ = writeln!(
+                s,
+                "        case {page}u: {{ return {array}{page}[offset]; }}"
+            );
         }
         s.push_str("        default: { return 0u; }\n    }\n");
     }
     s.push_str("}\n\n");
-    s
 }
 
 /// How the colour pass is specialised: fixed per tracer.
@@ -491,22 +497,13 @@ pub(crate) fn color_preamble(config: &ColorConfig) -> String {
         );
     }
     s.push_str("\n// Word `a` of the colour section (its bytes as little-endian words).\n");
-    s.push_str("fn color_word(a: u32) -> u32 {\n");
-    if config.pages == 1 {
-        s.push_str("    return cpage0[a];\n");
-    } else {
-        let _ = writeln!(
-            s,
-            "    let offset = a & {}u;",
-            (1u32 << config.page_shift) - 1
-        );
-        let _ = writeln!(s, "    switch (a >> {}u) {{", config.page_shift);
-        for page in 0..config.pages {
-            let _ = writeln!(s, "        case {page}u: {{ return cpage{page}[offset]; }}");
-        }
-        s.push_str("        default: { return 0u; }\n    }\n");
-    }
-    s.push_str("}\n\n");
+    push_paged_load(
+        &mut s,
+        "color_word",
+        "cpage",
+        config.pages,
+        config.page_shift,
+    );
     s
 }
 

@@ -498,6 +498,21 @@ pub struct GpuTracer {
     colors: Option<colors::SharedColors>,
 }
 
+/// What [`GpuTracer`]'s constructors hand to its upload: a DAG of either
+/// format version, as the shader reads it.
+struct DagSource<'a, 'b> {
+    header: &'a dagfmt::Header,
+    /// Whether the volume holds no voxel.
+    empty: bool,
+    levels: &'b [UploadLevel<'a>],
+    /// The saturated-count table (level, node, count).
+    saturated: Vec<(u8, u32, u64)>,
+    /// Whether the levels are 2.0 records (the shader variant to compile).
+    format_v2: bool,
+    /// The file's colours, uploaded as stored when `GpuOptions::colors` asks.
+    colors: Option<dagfmt::ColorTable<'a>>,
+}
+
 impl GpuTracer {
     /// Makes a context ([`GpuContext::new`] with `options.adapter`) and
     /// uploads `dag`.
@@ -514,12 +529,14 @@ impl GpuTracer {
         let saturated = upload::saturated_counts(dag)?;
         Self::build(
             context,
-            dag.header(),
-            dag.is_empty(),
-            &UploadLevel::v1(dag),
-            saturated,
-            false,
-            dag.color_table(),
+            DagSource {
+                header: dag.header(),
+                empty: dag.is_empty(),
+                levels: &UploadLevel::v1(dag),
+                saturated,
+                format_v2: false,
+                colors: dag.color_table(),
+            },
             options,
         )
     }
@@ -581,27 +598,33 @@ impl GpuTracer {
         let starts = upload::record_starts(levels);
         Self::build(
             context,
-            header,
-            levels[0].item_count == 0,
-            &UploadLevel::v2(levels, &starts),
-            saturated,
-            true,
-            colors,
+            DagSource {
+                header,
+                empty: levels[0].item_count == 0,
+                levels: &UploadLevel::v2(levels, &starts),
+                saturated,
+                format_v2: true,
+                colors,
+            },
             options,
         )
     }
 
-    /// Uploads `levels` (of either format) and compiles the shader variant.
+    /// Uploads the levels of `source` (of either format) and compiles the
+    /// shader variant.
     fn build(
         context: &GpuContext,
-        header: &dagfmt::Header,
-        empty: bool,
-        levels: &[UploadLevel<'_>],
-        saturated: Vec<(u8, u32, u64)>,
-        format_v2: bool,
-        colors: Option<dagfmt::ColorTable<'_>>,
+        source: DagSource<'_, '_>,
         options: &GpuOptions,
     ) -> Result<Self, GpuError> {
+        let DagSource {
+            header,
+            empty,
+            levels,
+            saturated,
+            format_v2,
+            colors,
+        } = source;
         let (stack_size, short_stack) = match options.stack {
             StackMode::Full => (MAX_STORED_LEVELS as u32, false),
             StackMode::Short(n) if n.is_power_of_two() && n <= 16 => (n, true),

@@ -418,6 +418,36 @@ fn read_bits64(bytes: &[u8], start: usize, pos: u64, n: u32) -> u64 {
         | u64::from(read_bits(bytes, start, pos + 32, n - 32)) << 32
 }
 
+/// Whether each of `count` indices of `w` bits (1 ≤ w ≤ 7) at bit `pos` of the
+/// stream at `start` is below `k` (1 ≤ k < 2^w). Several indices a read:
+/// the even and the odd ones are spread into slots of 2w bits, and
+/// `index + 2^w − k` carries into bit w of its slot exactly when index ≥ k.
+fn indices_below(bytes: &[u8], start: usize, mut pos: u64, count: u64, w: u32, k: u32) -> bool {
+    debug_assert!((1..=7).contains(&w) && k >= 1 && k < 1 << w);
+    let per = u64::from(56 / w);
+    let (mut slots, mut add, mut high) = (0u64, 0u64, 0u64);
+    let mut at = 0;
+    while at + 2 * w <= 64 {
+        slots |= ((1u64 << w) - 1) << at;
+        add |= u64::from((1u32 << w) - k) << at;
+        high |= 1u64 << (at + w);
+        at += 2 * w;
+    }
+    let mut left = count;
+    while left > 0 {
+        let n = left.min(per);
+        let word = read_bits64(bytes, start, pos, n as u32 * w);
+        let even = word & slots;
+        let odd = (word >> w) & slots;
+        if ((even + add) | (odd + add)) & high != 0 {
+            return false;
+        }
+        pos += n * u64::from(w);
+        left -= n;
+    }
+    true
+}
+
 fn byte(bytes: &[u8], at: usize) -> u32 {
     bytes.get(at).copied().map_or(0, u32::from)
 }
@@ -997,6 +1027,23 @@ fn check_block(
             return;
         }
         let mut pos = h.entries_at() + u64::from(k) * eb;
+        if check_indices && h.split_flags == 0 {
+            // No split: the codes are one run of indices (one per uniform
+            // sub-block, one per colour of the others). Checked a word at a
+            // time; the loop below finds the culprit only when one is out of
+            // range.
+            let mut count = 0u64;
+            for t in 0..subs {
+                count += if h.uniform >> t & 1 == 1 {
+                    1
+                } else {
+                    u64::from((n - t * SUB_BLOCK).min(SUB_BLOCK))
+                };
+            }
+            if indices_below(s, h.bits, pos, count, w as u32, k) {
+                return;
+            }
+        }
         let mut rank = 0;
         for t in 0..subs {
             let len = (n - t * SUB_BLOCK).min(SUB_BLOCK);
@@ -1480,6 +1527,24 @@ fn encode_with(
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    proptest! {
+        /// The word-at-a-time index check answers as a check of each index
+        /// read on its own, at any bit offset, near the end of the bytes too.
+        #[test]
+        fn indices_below_checks_every_index(
+            bytes in proptest::collection::vec(any::<u8>(), 0..80),
+            start in 0usize..8,
+            pos in 0u64..64,
+            count in 0u64..300,
+            w in 1u32..=6,
+            k_seed in any::<u32>(),
+        ) {
+            let k = 1 + k_seed % ((1 << w) - 1);
+            let each = (0..count).all(|i| read_bits(&bytes, start, pos + i * u64::from(w), w) < k);
+            prop_assert_eq!(indices_below(&bytes, start, pos, count, w, k), each);
+        }
+    }
 
     fn check_round_trip(colors: &[[u8; 4]], e: u8) {
         check_layout_round_trip(colors, e, None);

@@ -29,7 +29,7 @@ use super::layout::{
     GpuColorParams, MAX_PAGES,
 };
 use super::upload::PageWriter;
-use super::{GpuContext, GpuError, GpuTracer, device_error};
+use super::{GpuContext, GpuError, GpuTracer, device_error, storage, uniform};
 
 /// Records of one dispatch of [`GpuTracer::hit_colors`].
 const CHUNK_RECORDS: usize = 1 << 20;
@@ -285,27 +285,8 @@ fn compile(context: &GpuContext, config: &ColorConfig) -> Result<ColorPipeline, 
         label: Some("vdag colors.wgsl"),
         source: wgpu::ShaderSource::Wgsl(layout::color_shader_source(config).into()),
     });
-    let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    };
     let mut entries = vec![
-        wgpu::BindGroupLayoutEntry {
-            binding: BINDING_COLOR_PARAMS,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Uniform,
-                has_dynamic_offset: false,
-                min_binding_size: wgpu::BufferSize::new(size_of::<GpuColorParams>() as u64),
-            },
-            count: None,
-        },
+        uniform::<GpuColorParams>(BINDING_COLOR_PARAMS),
         storage(BINDING_COLOR_RECORDS, true),
         storage(BINDING_COLOR_OUT, false),
     ];

@@ -333,15 +333,7 @@ fn wgsl_decoding_reads_nodes_and_leaves_as_the_cpu_does() {
     let mut pipelines = Pipelines::new();
     let mut rng = Rng(0x36d);
     let mut checked = 0;
-    let cases = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&cases)
-        .expect("the conformance cases")
-        .map(|e| e.expect("a directory entry").path())
-        .filter(|p| p.extension().is_some_and(|e| e == "vdag"))
-        .collect();
-    files.sort();
-    assert!(!files.is_empty(), "no .vdag in {}", cases.display());
-    for file in &files {
+    for file in &conformance_case_files() {
         let bytes = std::fs::read(file).expect("a case file");
         let name = file.display().to_string();
         checked += check(&ctx, &mut pipelines, (&name, &bytes), false, &mut rng);
@@ -510,15 +502,7 @@ fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
     // Shared unreflected, shared reflected, sequential first (or leaf),
     // sequential later in an interior level.
     let mut kinds = [0usize; 4];
-    let cases = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&cases)
-        .expect("the conformance cases")
-        .map(|e| e.expect("a directory entry").path())
-        .filter(|p| p.extension().is_some_and(|e| e == "vdag"))
-        .collect();
-    files.sort();
-    assert!(!files.is_empty(), "no .vdag in {}", cases.display());
-    for file in &files {
+    for file in &conformance_case_files() {
         let bytes = std::fs::read(file).expect("a case file");
         let upgraded = upgrade(&Dag::open(&bytes).expect("a case opens")).expect("upgrade");
         let name = format!("{} (2.0)", file.display());
@@ -584,4 +568,17 @@ fn random_dag(depth: u8, voxels: usize, clusters: usize, rng: &mut Rng) -> Vec<u
     DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, points)
         .expect("valid voxels")
         .to_bytes()
+}
+
+/// The `.vdag` files of the conformance suite's trace cases, sorted.
+fn conformance_case_files() -> Vec<PathBuf> {
+    let cases = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&cases)
+        .expect("the conformance cases")
+        .map(|e| e.expect("a directory entry").path())
+        .filter(|p| p.extension().is_some_and(|e| e == "vdag"))
+        .collect();
+    files.sort();
+    assert!(!files.is_empty(), "no .vdag in {}", cases.display());
+    files
 }

@@ -257,29 +257,10 @@ impl GpuContext {
             ..Default::default()
         }))
         .map_err(device_error)?;
-        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
         let io_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("vdag io"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: BINDING_PARAMS,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: wgpu::BufferSize::new(size_of::<GpuParams>() as u64),
-                    },
-                    count: None,
-                },
+                uniform::<GpuParams>(BINDING_PARAMS),
                 storage(BINDING_RAYS, true),
                 storage(BINDING_HITS, false),
                 storage(BINDING_IMAGE, false),
@@ -511,6 +492,34 @@ struct DagSource<'a, 'b> {
     format_v2: bool,
     /// The file's colours, uploaded as stored when `GpuOptions::colors` asks.
     colors: Option<dagfmt::ColorTable<'a>>,
+}
+
+/// A compute shader's storage buffer binding.
+pub(crate) fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// A compute shader's uniform buffer binding holding a `T`.
+pub(crate) fn uniform<T>(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: wgpu::BufferSize::new(size_of::<T>() as u64),
+        },
+        count: None,
+    }
 }
 
 impl GpuTracer {

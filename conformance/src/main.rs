@@ -195,7 +195,14 @@ fn judge(
     timeout: Duration,
 ) -> Result<bool, String> {
     let bytes = read_file(file)?;
-    let dag = dagfmt::Dag::open(&bytes).map_err(|e| format!("{}: {e}", file.display()))?;
+    // The judge reads the voxels through the 1.0 reader: a 2.0 file is
+    // judged on its 1.0 form, made in memory (the same voxels and indices).
+    let named = |e: &dyn std::fmt::Display| format!("{}: {e}", file.display());
+    let v1_form = match dagfmt::AnyDag::open(&bytes).map_err(|e| named(&e))? {
+        dagfmt::AnyDag::V1(_) => None,
+        dagfmt::AnyDag::V2(d) => Some(dagfmt::v2file::downgrade(&d).map_err(|e| named(&e))?),
+    };
+    let dag = dagfmt::Dag::open(v1_form.as_deref().unwrap_or(&bytes)).map_err(|e| named(&e))?;
     let judge = Judge::new(&dag).map_err(|e| format!("{}: {e}", file.display()))?;
     let rays = batch::parse_rays(&read_file(rays_path)?)
         .map_err(|e| format!("{}: {e}", rays_path.display()))?;

@@ -517,6 +517,26 @@ fn the_judge_command_lists_rejections_and_sets_its_status() {
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert_eq!(output.status.code(), Some(0), "{stdout}");
     assert_eq!(stdout.trim(), "2 rays judged: 2 accepted, 0 rejected");
+    // The 2.0 file of the same voxels (the tools' default) is judged alike.
+    let upgraded = dagfmt::v2file::upgrade(&dag).expect("2.0");
+    let file2 = write(temp.path(), "half2.vdag", &upgraded);
+    for answers in [
+        &hits,
+        &write(temp.path(), "miss.hits", b"vdag-hits 1\nmiss\nmiss\n"),
+    ] {
+        let judged = |f: &str| {
+            Command::new(conformance_exe())
+                .args(["judge", f, "--rays", &rays_path, "--hits", answers])
+                .output()
+                .expect("runs")
+        };
+        let (one, two) = (judged(&file), judged(&file2));
+        assert_eq!(two.status.code(), one.status.code());
+        assert_eq!(
+            String::from_utf8_lossy(&two.stdout),
+            String::from_utf8_lossy(&one.stdout)
+        );
+    }
     // Text answers: the first is a miss through the solid half.
     let bad = write(temp.path(), "bad.hits", b"vdag-hits 1\nmiss\nmiss\n");
     let output = Command::new(conformance_exe())

@@ -984,6 +984,32 @@ pub fn voxel_index(
     )
 }
 
+/// Whether the voxel with Morton code `code` is set in 2.0 `levels`: the
+/// descent of [`voxel_index`] without its sibling sums (which a file without
+/// voxel-count attributes pays a subtree walk for).
+pub fn is_set(levels: &[LevelView<'_>], code: u64) -> Result<bool, FormatError> {
+    let Some(last) = levels.len().checked_sub(1) else {
+        return Ok(false);
+    };
+    if levels[last].item_count == 0 || levels[0].item_count == 0 {
+        return Ok(false);
+    }
+    let mut at = 0u64;
+    let mut acc = 0u8;
+    for level in 0..last {
+        let lv = &levels[level];
+        let node = decode_node(lv.bytes, at, lv.widths)?;
+        let c = ((code >> (3 * (last - level) + 3)) & 7) as u8;
+        let Some(child) = node.children[usize::from(c ^ acc)] else {
+            return Ok(false);
+        };
+        let (target, r) = child_address(child, child_level(levels, level))?;
+        at = target;
+        acc ^= r;
+    }
+    Ok(reflect_leaf(leaf_mask(levels, at)?, acc) >> (code & 63) & 1 != 0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1237,6 +1263,16 @@ mod tests {
             for &code in expected.iter().step_by(7) {
                 let [x, y, z] = crate::morton::decode(code);
                 prop_assert_eq!(enc.voxel_index(code).unwrap(), dag.voxel_index(x, y, z).unwrap());
+            }
+            // Membership, set or not, as the 1.0 reader answers it.
+            let views = enc.views();
+            for &(x, y, z) in voxels.iter().take(64) {
+                let [x, y, z] = [x % res, y % res, z % res];
+                let code = crate::morton::encode(x, y, z);
+                prop_assert_eq!(is_set(&views, code).unwrap(), dag.is_set(x, y, z).unwrap());
+                let neighbour = crate::morton::encode((x + 1) % res, y, (z + 3) % res);
+                let [nx, ny, nz] = crate::morton::decode(neighbour);
+                prop_assert_eq!(is_set(&views, neighbour).unwrap(), dag.is_set(nx, ny, nz).unwrap());
             }
             // Deterministic.
             prop_assert_eq!(encode(&dag).unwrap(), enc.clone());

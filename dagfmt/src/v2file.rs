@@ -211,6 +211,17 @@ impl<'a> Dag2<'a> {
         )
     }
 
+    /// Whether voxel `(x, y, z)` is set (`false` outside the volume).
+    pub fn is_set(&self, x: u32, y: u32, z: u32) -> Result<bool, FormatError> {
+        if [x, y, z]
+            .iter()
+            .any(|&c| u64::from(c) >> self.header.depth != 0)
+        {
+            return Ok(false);
+        }
+        v2::is_set(&self.levels, crate::morton::encode(x, y, z))
+    }
+
     /// The sections after the level sections (colours, optional sections)
     /// with their bytes, in table order.
     fn extra_sections(&self) -> Vec<(SectionInfo, &'a [u8])> {
@@ -307,6 +318,14 @@ impl<'a> AnyDag<'a> {
         match self {
             AnyDag::V1(d) => d.voxel_index(x, y, z),
             AnyDag::V2(d) => d.voxel_index(x, y, z),
+        }
+    }
+
+    /// Whether voxel `(x, y, z)` is set (`false` outside the volume).
+    pub fn is_set(&self, x: u32, y: u32, z: u32) -> Result<bool, FormatError> {
+        match self {
+            AnyDag::V1(d) => d.is_set(x, y, z),
+            AnyDag::V2(d) => d.is_set(x, y, z),
         }
     }
 

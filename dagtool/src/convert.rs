@@ -118,8 +118,10 @@ pub struct ConvertOptions {
     /// What the nodes' attribute bits hold (kind 1, voxel counts, unless
     /// `--attributes none`); colours need kind 1.
     pub attributes: AttributeKind,
-    /// The major format version written: 1 (default) or 2 (spec §23: the
-    /// 1.0 DAG is built as usual, then upgraded in memory).
+    /// The major format version written: 2 (the default; spec §23: the 1.0
+    /// DAG is built as usual, then upgraded in memory) or 1. It does not
+    /// apply to a region build: a part is always format 1 (spec §24), and
+    /// `dagtool merge` writes the whole volume in the version asked.
     pub format_version: u16,
     /// Build only this cell of the root cube, into a part (spec § 24); needs
     /// `bounds`, so that every part has the same root cube.
@@ -301,7 +303,7 @@ impl ConvertOptions {
             bounds: None,
             point_radius: 0.0,
             attributes: AttributeKind::VoxelCount,
-            format_version: 1,
+            format_version: 2,
             region: None,
             extra_inputs: Vec::new(),
             progress_hook: None,
@@ -617,17 +619,18 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
             "--colors needs the voxel-count attributes (they index the colours): drop --attributes none".into(),
         ));
     }
-    if opts.region.is_some() && opts.format_version != 1 {
-        return Err(ConvertError::Usage(
-            "--region writes a part, which is format 1 (spec §24): drop --format-version 2, merge the parts, then `dagtool upgrade` the merged file".into(),
-        ));
+    if !(1..=2).contains(&opts.format_version) {
+        return Err(ConvertError::Usage(format!(
+            "--format-version {}: this tool writes format versions 1 and 2",
+            opts.format_version
+        )));
     }
-    match opts.format_version {
-        1 => convert_v1(opts),
-        2 => convert_v2(opts),
-        v => Err(ConvertError::Usage(format!(
-            "--format-version {v}: this tool writes format versions 1 and 2"
-        ))),
+    // A region build writes a part, and parts are format 1 (spec §24): the
+    // merge of all the parts writes the whole volume in `format_version`.
+    if opts.format_version == 1 || opts.region.is_some() {
+        convert_v1(opts)
+    } else {
+        convert_v2(opts)
     }
 }
 

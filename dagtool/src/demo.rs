@@ -160,8 +160,17 @@ pub fn run(opts: &DemoOptions) -> Result<bool, ConvertError> {
     }
     say!("3. validate   valid ({} bytes checked)", map.bytes().len());
 
-    let dag = Dag::open(map.bytes())
-        .map_err(|e| ConvertError::Usage(format!("cannot open {}: {e}", dag_path.display())))?;
+    let cannot_open = |e: &dyn std::fmt::Display| {
+        ConvertError::Usage(format!("cannot open {}: {e}", dag_path.display()))
+    };
+    // The file is 2.0 (convert's default); the GPU's lit render reads 1.0,
+    // so the image is rendered from its 1.0 form, made in memory: the same
+    // voxels, the same pixels.
+    let v1_form = match dagfmt::AnyDag::open(map.bytes()).map_err(|e| cannot_open(&e))? {
+        dagfmt::AnyDag::V1(_) => None,
+        dagfmt::AnyDag::V2(d) => Some(dagfmt::v2file::downgrade(&d).map_err(|e| cannot_open(&e))?),
+    };
+    let dag = Dag::open(v1_form.as_deref().unwrap_or(map.bytes())).map_err(|e| cannot_open(&e))?;
     let (w, h) = (opts.width, opts.height);
     let camera = Camera::automatic(&dag, f64::from(w) / f64::from(h));
     let started = Instant::now();

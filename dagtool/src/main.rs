@@ -114,7 +114,14 @@ MEMORY, TEMPORARY FILES AND OUTPUT
   most they held at once. They are unnamed (O_TMPFILE on Linux): nothing is left
   behind on success, on error, or if the process is killed. The output is
   written to a temporary file beside it, synced and renamed: it is either
-  complete or absent. An existing output is never replaced without --force.";
+  complete or absent. An existing output is never replaced without --force.
+
+FORMAT VERSION
+  The output is format 2.0 (spec section 23; the 1.0 DAG is built as above,
+  then upgraded in memory). --format-version 1 writes format 1.0 for 1.x
+  readers; `dagtool upgrade` converts between them. A --region build writes a
+  part, which is always format 1; `dagtool merge` writes the whole volume in
+  2.0 (or 1.0 with --format-version 1).";
 
 #[derive(Parser, Debug)]
 #[command(
@@ -153,6 +160,11 @@ enum Command {
         /// Testing: merge every level in this many buckets.
         #[arg(long, hide = true)]
         buckets: Option<u32>,
+        /// The format version of the whole-volume file: 2 (default, as
+        /// `convert` writes) or 1. A merge that does not cover the whole
+        /// root cube writes a part, which is always format 1.
+        #[arg(long, value_name = "1|2", default_value_t = 2, value_parser = clap::value_parser!(u16).range(1..=2))]
+        format_version: u16,
         /// Replace an existing output file.
         #[arg(long)]
         force: bool,
@@ -378,12 +390,14 @@ struct ConvertArgs {
     /// subtree voxel counts, which index colours) or `none` (kind 0, zero).
     #[arg(long, value_enum, default_value_t = AttributesArg::Counts, conflicts_with = "colors")]
     attributes: AttributesArg,
-    /// The format version to write: 1 (default: every tracer reads it) or 2
-    /// (spec §23: symmetry-aware records, about half the size; `dagtrace`
-    /// traces it on the CPU and the GPU, but for the GPU's lit render —
-    /// `dagtool upgrade --format-version 1` turns it back into 1.0).
-    #[arg(long, value_name = "1|2", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=2))]
-    format_version: u16,
+    /// The format version to write: 2 (default; spec §23: symmetry-aware
+    /// records, about half the size of 1.0; every reader and tracer of this
+    /// suite reads it, `dagtrace render --shade lit` lights it on the CPU)
+    /// or 1 (what 1.x readers elsewhere read; `dagtool upgrade` converts
+    /// between them). A --region build writes a part, which is always
+    /// format 1; `dagtool merge` writes the whole volume in 2.0 (default).
+    #[arg(long, value_name = "1|2", value_parser = clap::value_parser!(u16).range(1..=2))]
+    format_version: Option<u16>,
     /// With --colors: store them packed (a PACKED_COLORS section, about a
     /// tenth of the raw size), each channel within E of the source (0..=127;
     /// 0 = lossless). Without it colours are stored raw, 4 bytes per voxel.
@@ -485,7 +499,15 @@ fn convert_cmd(args: ConvertArgs) -> Result<(), ConvertError> {
         AttributesArg::Counts => dagfmt::AttributeKind::VoxelCount,
         AttributesArg::None => dagfmt::AttributeKind::None,
     };
-    opts.format_version = args.format_version;
+    opts.format_version = match (args.format_version, &opts.region) {
+        (Some(2), Some(_)) => {
+            return Err(ConvertError::Usage(
+                "--region writes a part, which is format 1 (spec §24): drop --format-version 2; `dagtool merge` writes the whole volume as 2.0".into(),
+            ));
+        }
+        (Some(v), _) => v,
+        (None, _) => opts.format_version,
+    };
     opts.color_error = args.color_error;
     opts.force = args.force;
     opts.progress = !args.quiet;
@@ -538,6 +560,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
             memory_limit,
             tmp_dir,
             buckets,
+            format_version,
             force,
             quiet,
         } => {
@@ -554,6 +577,7 @@ fn run(cli: Cli) -> Result<i32, ConvertError> {
                 force,
                 tmp_dir,
                 buckets,
+                format_version,
             };
             let summary = dagtool::merge::merge(&parts, &output, &opts)?;
             if !quiet {

@@ -21,7 +21,7 @@ use dagfmt::assemble::FileHeader;
 use dagfmt::mmap::MappedFile;
 use dagfmt::reader::{LevelSection, NodeRef};
 use dagfmt::validate::{ValidateOptions, validate_with};
-use dagfmt::{Dag, FormatError};
+use dagfmt::{AnyDag, Dag, FormatError};
 
 use crate::error::ConvertError;
 use crate::external::{ColourSink, MIN_MERGE_BUDGET, RunMerge, Scratch};
@@ -30,7 +30,7 @@ use crate::region::{ColourMode, Placement, Region, check_part, rules};
 use crate::sysinfo::{current_rss, total_memory};
 
 /// Options of `dagtool merge`.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct MergeOptions {
     /// Memory limit in bytes (`None`: 3/4 of physical memory).
     pub memory_limit: Option<u64>,
@@ -40,6 +40,22 @@ pub struct MergeOptions {
     pub tmp_dir: Option<PathBuf>,
     /// Testing: the number of buckets of every level's merge.
     pub buckets: Option<u32>,
+    /// The major format version of the whole-volume file: 2 (the default,
+    /// as `dagtool convert`'s) or 1. A merge that does not cover the whole
+    /// root cube writes a part, which is always format 1 (spec §24.3).
+    pub format_version: u16,
+}
+
+impl Default for MergeOptions {
+    fn default() -> Self {
+        MergeOptions {
+            memory_limit: None,
+            force: false,
+            tmp_dir: None,
+            buckets: None,
+            format_version: 2,
+        }
+    }
 }
 
 /// What a merge did.
@@ -54,6 +70,9 @@ pub struct MergeSummary {
     /// Whether the output covers the whole root cube, and is therefore an
     /// ordinary `.vdag` (no placement) rather than a part.
     pub complete: bool,
+    /// The major format version written: the one asked for the whole
+    /// volume, 1 for a part.
+    pub format_version: u16,
     /// Depth D.
     pub depth: u8,
     /// Set voxels.
@@ -81,7 +100,7 @@ impl MergeSummary {
             "merged:   {} part{} of level {} (cells {}..{} of {}), depth {}\n\
              voxels:   {}\n\
              nodes:    {:?} per level\n\
-             output:   {} ({} bytes, {})\n\
+             output:   {} ({} bytes, {}, format {}.0)\n\
              time:     {:.2} s ({:.2} s validating {} bytes of parts; {} temporary bytes, up to {} buckets per level)\n",
             self.parts,
             if self.parts == 1 { "" } else { "s" },
@@ -99,6 +118,7 @@ impl MergeSummary {
             } else {
                 "a part"
             },
+            self.format_version,
             self.total_seconds,
             self.validate_seconds,
             self.input_bytes,
@@ -141,6 +161,16 @@ fn open_part(path: &Path) -> Result<Part, ConvertError> {
             e.code.code(),
             e.code.name(),
             format!("invalid at byte {:#x}: {}", e.offset, e.message),
+        ));
+    }
+    // Parts are format 1 (spec §24.1): a valid 2.0 file is an ordinary file.
+    if let Ok(AnyDag::V2(_)) = AnyDag::open(file.bytes()) {
+        let (code, name) = rules::NOT_A_PART;
+        return Err(part_error(
+            path,
+            code,
+            name,
+            "a format 2.0 file is not a part (parts are format 1; make them with convert --region)",
         ));
     }
     let dag = Dag::open(file.bytes()).map_err(|e| format_error(path, &e))?;
@@ -193,6 +223,12 @@ pub fn merge(
     let start = Instant::now();
     if parts.is_empty() {
         return Err(ConvertError::Usage("merge needs at least one part".into()));
+    }
+    if !(1..=2).contains(&opts.format_version) {
+        return Err(ConvertError::Usage(format!(
+            "--format-version {}: the format versions are 1 and 2",
+            opts.format_version
+        )));
     }
     check_output(output, opts.force)?;
     let out_dir = dagfmt::output::output_dir(output);
@@ -329,19 +365,35 @@ pub fn merge(
         root_size: header.root_size,
         voxel_count: dag.voxel_count(),
     };
-    let file_bytes = crate::convert::write_dag(
-        output,
-        opts.force,
-        &dag,
-        colours.as_ref(),
-        file_header,
-        (!complete).then_some(&placement),
-    )?;
+    // The whole volume in 2.0 is its 1.0 file upgraded, as `convert`
+    // writes it (so the bytes are the same); a part is always 1.0.
+    let format_version = if complete { opts.format_version } else { 1 };
+    let file_bytes = if format_version == 1 {
+        crate::convert::write_dag(
+            output,
+            opts.force,
+            &dag,
+            colours.as_ref(),
+            file_header,
+            (!complete).then_some(&placement),
+        )?
+    } else {
+        let temp = tempfile::Builder::new()
+            .prefix(".vdag-1.0-")
+            .suffix(".tmp")
+            .tempfile_in(&out_dir)
+            .map_err(|e| {
+                ConvertError::io(format!("cannot create a file in {}", out_dir.display()), e)
+            })?;
+        crate::convert::write_dag(temp.path(), true, &dag, colours.as_ref(), file_header, None)?;
+        crate::cmd::upgrade::upgrade(temp.path(), output, 2, opts.force)?.output_bytes
+    };
     Ok(MergeSummary {
         parts: parts.len(),
         region_level: level,
         cells: placement.cells.clone(),
         complete,
+        format_version,
         depth,
         voxels: dag.voxel_count(),
         level_nodes: dag.level_sections().iter().map(|s| s.item_count).collect(),

@@ -13,7 +13,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 
 use crate::cmd::FileBytes;
 use crate::error::ConvertError;
@@ -127,7 +127,7 @@ pub fn verify_points(
     }
     let start = Instant::now();
     let bytes = FileBytes::open(dag_path)?;
-    let dag = Dag::open(bytes.bytes())
+    let dag = AnyDag::open(bytes.bytes())
         .map_err(|e| ConvertError::Input(format!("{}: {e}", dag_path.display())))?;
     let header = dag.header();
     let n = 1u32 << header.depth;
@@ -135,12 +135,9 @@ pub fn verify_points(
     let root_min = header.root_min;
     let dag_error =
         |e: dagfmt::FormatError| ConvertError::Input(format!("{}: {e}", dag_path.display()));
-    // The set voxels, in Morton order (the order the DAG lists them in).
-    let mut set_codes = Vec::new();
-    let mut voxels = dag.voxels();
-    while let Some(code) = voxels.next_morton() {
-        set_codes.push(code.map_err(dag_error)?);
-    }
+    // The set voxels, in Morton order (the order the DAG lists them in),
+    // of either format version.
+    let set_codes = dag.voxel_codes().map_err(dag_error)?;
     let is_set = |v: [u32; 3]| {
         set_codes
             .binary_search(&dagfmt::morton::encode(v[0], v[1], v[2]))

@@ -41,6 +41,9 @@ pub(crate) fn convert_error(py: Python<'_>, e: &ConvertError) -> PyErr {
 /// `file_bytes`, `depth`, `root_min`, `root_size`, `total_seconds`,
 /// `peak_rss`, `warnings`).
 ///
+/// `format_version` is the format written: 2 (the default, as `dagtool
+/// convert`'s; spec §23) or 1.
+///
 /// `depth` is required for meshes; `colors` stores per-voxel colours
 /// (`color_error` packs them within that per-channel error, 0 = lossless);
 /// `solid` fills closed meshes; `memory_limit` is bytes or a size such as
@@ -58,7 +61,7 @@ pub(crate) fn convert_error(py: Python<'_>, e: &ConvertError) -> PyErr {
 /// it is not called again and its exception is raised when the conversion
 /// ends (the conversion itself is not interrupted).
 #[pyfunction]
-#[pyo3(signature = (input, output, depth = None, *, colors = false, solid = false, color_error = None, memory_limit = None, bounds = None, point_radius = 0.0, force = false, tmp_dir = None, progress = None))]
+#[pyo3(signature = (input, output, depth = None, *, colors = false, solid = false, color_error = None, memory_limit = None, bounds = None, point_radius = 0.0, force = false, tmp_dir = None, progress = None, format_version = 2))]
 #[allow(clippy::too_many_arguments)]
 pub fn convert<'py>(
     py: Python<'py>,
@@ -74,6 +77,7 @@ pub fn convert<'py>(
     force: bool,
     tmp_dir: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
+    format_version: u16,
 ) -> PyResult<Bound<'py, PyDict>> {
     let depth = depth
         .map(dagtool::convert::check_depth)
@@ -86,6 +90,7 @@ pub fn convert<'py>(
     opts.force = force;
     opts.tmp_dir = tmp_dir;
     opts.point_radius = point_radius;
+    opts.format_version = format_version;
     opts.memory_limit = match memory_limit {
         None => None,
         Some(Size::Bytes(b)) => Some(b),

@@ -1,11 +1,13 @@
 //! `vdag.open`, `vdag.validate` and the `Dag` class: a memory-mapped file
-//! and the queries `dagfmt`'s reader answers.
+//! of either format version (1.x or 2.0, spec §23) and the queries
+//! `dagfmt`'s readers answer.
 
+use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::sync::{Arc, Mutex};
 
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 use dagfmt::layout::SectionKind;
 use dagfmt::mmap::MappedFile;
 use numpy::ndarray::Array2;
@@ -64,15 +66,44 @@ pub struct PyDag {
 }
 
 impl PyDag {
-    /// The reader over the file's bytes. Opening is O(sections) and cannot
-    /// fail once it has succeeded in `open` (the bytes are the same), but an
-    /// error is still an exception, never a panic.
-    pub(crate) fn dag(&self, py: Python<'_>) -> PyResult<Dag<'_>> {
-        Dag::open(self.source.bytes()).map_err(|e| errors::format_error(py, &self.path, &e))
+    /// The reader over the file's bytes, of the file's version. Opening is
+    /// O(sections) and cannot fail once it has succeeded in `open` (the
+    /// bytes are the same), but an error is still an exception, never a
+    /// panic.
+    pub(crate) fn dag(&self, py: Python<'_>) -> PyResult<AnyDag<'_>> {
+        AnyDag::open(self.source.bytes()).map_err(|e| errors::format_error(py, &self.path, &e))
     }
 }
 
-/// Opens a `.vdag` (or `.vdag.zst`) file and returns a `Dag`.
+/// Calls `voxel` with each set voxel's coordinates in Morton order, until it
+/// answers [`ControlFlow::Break`]: the 1.x reader's iterator, or a 2.0
+/// file's leaves under their reflections (`Dag2::for_each_leaf`).
+fn for_each_voxel(
+    dag: &AnyDag<'_>,
+    mut voxel: impl FnMut([u32; 3]) -> ControlFlow<()>,
+) -> Result<(), dagfmt::FormatError> {
+    match dag {
+        AnyDag::V1(d) => {
+            for v in d.voxels() {
+                if voxel(v?).is_break() {
+                    break;
+                }
+            }
+            Ok(())
+        }
+        AnyDag::V2(d) => d.for_each_leaf(|prefix, mut mask| {
+            while mask != 0 {
+                let code = prefix << 6 | u64::from(mask.trailing_zeros());
+                voxel(dagfmt::morton::decode(code))?;
+                mask &= mask - 1;
+            }
+            ControlFlow::Continue(())
+        }),
+    }
+}
+
+/// Opens a `.vdag` (or `.vdag.zst`) file of format 1.x or 2.0 and returns a
+/// `Dag` (`version` says which; every method answers for both alike).
 ///
 /// The file is memory-mapped (a `.vdag.zst` is unpacked into memory). With
 /// `validate=True` (the default) every rule of the format is checked first,
@@ -94,7 +125,7 @@ pub fn open(py: Python<'_>, path: PathBuf, validate: bool) -> PyResult<PyDag> {
             return Err(errors::format_error(py, &name, first));
         }
     }
-    let header = Dag::open(source.bytes())
+    let header = AnyDag::open(source.bytes())
         .map_err(|e| errors::format_error(py, &name, &e))?
         .header()
         .clone();
@@ -162,7 +193,7 @@ fn voxel_array(py: Python<'_>, flat: Vec<u32>) -> Bound<'_, PyArray2<u32>> {
 /// Sends the voxels of `source` to `chunks` in Morton order, `chunk` at a
 /// time; stops early when the receiver is gone.
 fn stream_voxels(source: &Source, chunk: usize, chunks: &SyncSender<VoxelChunk>) {
-    let dag = match Dag::open(source.bytes()) {
+    let dag = match AnyDag::open(source.bytes()) {
         Ok(dag) => dag,
         Err(e) => {
             let _ = chunks.send(Err(e));
@@ -170,20 +201,24 @@ fn stream_voxels(source: &Source, chunk: usize, chunks: &SyncSender<VoxelChunk>)
         }
     };
     let mut buffer = Vec::with_capacity(chunk * 3);
-    for voxel in dag.voxels() {
-        match voxel {
-            Ok(v) => buffer.extend_from_slice(&v),
-            Err(e) => {
-                let _ = chunks.send(Err(e));
-                return;
-            }
-        }
+    let mut receiver_gone = false;
+    let walked = for_each_voxel(&dag, |v| {
+        buffer.extend_from_slice(&v);
         if buffer.len() == chunk * 3 {
             let full = std::mem::replace(&mut buffer, Vec::with_capacity(chunk * 3));
             if chunks.send(Ok(full)).is_err() {
-                return;
+                receiver_gone = true;
+                return ControlFlow::Break(());
             }
         }
+        ControlFlow::Continue(())
+    });
+    if receiver_gone {
+        return;
+    }
+    if let Err(e) = walked {
+        let _ = chunks.send(Err(e));
+        return;
     }
     if !buffer.is_empty() {
         let _ = chunks.send(Ok(buffer));
@@ -198,7 +233,7 @@ impl PyDag {
         &self.path
     }
 
-    /// The format version as `(major, minor)`.
+    /// The format version as `(major, minor)`: `(1, minor)` or `(2, 0)`.
     #[getter]
     fn version(&self) -> (u16, u16) {
         (self.header.version_major, self.header.version_minor)
@@ -282,24 +317,47 @@ impl PyDag {
         }))
     }
 
-    /// The per-level table: one dict per level of the DAG, root first, with
-    /// `level`, `kind` (`"node"` or `"leaf"`), `nodes` (node records, or
-    /// 64-bit leaf masks), `bytes`, `pointer_width` (0 for the leaf level)
-    /// and `offset` (the section's byte offset in the file); the keys of
-    /// `dagtool info --json`'s `levels`.
+    /// The per-level table: one dict per level section of the file, root
+    /// first, with `level`, `kind` (`"node"` or `"leaf"`), `nodes` (node
+    /// records, or 64-bit leaf masks), `bytes`, `offset` (the section's byte
+    /// offset in the file), `pointer_width` (1.x: the bytes of a pointer, 0
+    /// for the leaf level; 2.0: `None`) and `widths` (2.0: the level's three
+    /// reference widths in bits, spec §23.2, `(0, 0, 0)` for the leaf level;
+    /// 1.x: `None`). `nodes`, `bytes` and `pointer_width` are the keys of
+    /// `dagtool info --json`'s `levels` for a 1.x file, `nodes` (`items`),
+    /// `bytes` and `widths` those of its `v2_levels` for a 2.0 file.
     #[getter]
     fn levels<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
         let dag = self.dag(py)?;
         let list = PyList::empty(py);
-        for level in dag.levels() {
-            let entry = PyDict::new(py);
-            entry.set_item("level", level.level)?;
-            entry.set_item("kind", if level.is_leaf { "leaf" } else { "node" })?;
-            entry.set_item("nodes", level.node_count)?;
-            entry.set_item("bytes", level.bytes.len())?;
-            entry.set_item("pointer_width", level.pointer_width)?;
-            entry.set_item("offset", level.file_offset)?;
-            list.append(entry)?;
+        match &dag {
+            AnyDag::V1(dag) => {
+                for level in dag.levels() {
+                    let entry = PyDict::new(py);
+                    entry.set_item("level", level.level)?;
+                    entry.set_item("kind", if level.is_leaf { "leaf" } else { "node" })?;
+                    entry.set_item("nodes", level.node_count)?;
+                    entry.set_item("bytes", level.bytes.len())?;
+                    entry.set_item("pointer_width", level.pointer_width)?;
+                    entry.set_item("widths", py.None())?;
+                    entry.set_item("offset", level.file_offset)?;
+                    list.append(entry)?;
+                }
+            }
+            AnyDag::V2(dag) => {
+                // The level sections are the first D − 1 entries (§23.10).
+                for (view, section) in dag.levels().iter().zip(dag.sections()) {
+                    let entry = PyDict::new(py);
+                    entry.set_item("level", section.level)?;
+                    entry.set_item("kind", if view.is_leaf { "leaf" } else { "node" })?;
+                    entry.set_item("nodes", view.item_count)?;
+                    entry.set_item("bytes", view.bytes.len())?;
+                    entry.set_item("pointer_width", py.None())?;
+                    entry.set_item("widths", view.widths)?;
+                    entry.set_item("offset", section.offset)?;
+                    list.append(entry)?;
+                }
+            }
         }
         Ok(list)
     }
@@ -314,9 +372,10 @@ impl PyDag {
             // The header's count sizes the buffer, bounded so that a damaged
             // header (with validate=False) cannot make it allocate at once.
             let mut flat = Vec::with_capacity(dag.header().voxel_count.min(1 << 24) as usize * 3);
-            for voxel in dag.voxels() {
-                flat.extend_from_slice(&voxel?);
-            }
+            for_each_voxel(&dag, |v| {
+                flat.extend_from_slice(&v);
+                ControlFlow::Continue(())
+            })?;
             Ok(flat)
         });
         match flat {

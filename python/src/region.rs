@@ -148,10 +148,14 @@ pub fn convert_region<'py>(
 /// they cover the whole root cube, the file one conversion of the whole input
 /// writes, byte for byte. Parts are validated first; bad, overlapping or
 /// mismatched parts raise `vdag.ConvertError` with the spec's code
-/// (E090 – E098, or the format's). Returns a dict (`complete`, `cells`,
-/// `voxels`, `file_bytes`, `input_bytes`, `seconds`).
+/// (E090 – E098, or the format's). `format_version` is the format of the
+/// whole-volume file: 2 (the default, as `dagtool merge`'s and `convert`'s)
+/// or 1; a merge that does not cover the whole root cube writes a part,
+/// which is always format 1. Returns a dict (`complete`, `cells`,
+/// `format_version` (of the file written), `voxels`, `file_bytes`,
+/// `input_bytes`, `seconds`).
 #[pyfunction]
-#[pyo3(signature = (parts, output, *, memory_limit = None, force = false, tmp_dir = None))]
+#[pyo3(signature = (parts, output, *, memory_limit = None, force = false, tmp_dir = None, format_version = 2))]
 pub fn merge<'py>(
     py: Python<'py>,
     parts: Vec<PathBuf>,
@@ -159,12 +163,14 @@ pub fn merge<'py>(
     memory_limit: Option<Size>,
     force: bool,
     tmp_dir: Option<PathBuf>,
+    format_version: u16,
 ) -> PyResult<Bound<'py, PyDict>> {
     let opts = MergeOptions {
         memory_limit: memory(memory_limit)?,
         force,
         tmp_dir,
         buckets: None,
+        format_version,
     };
     let summary = py
         .detach(|| dagtool::merge::merge(&parts, &output, &opts))
@@ -172,6 +178,7 @@ pub fn merge<'py>(
     let d = PyDict::new(py);
     d.set_item("complete", summary.complete)?;
     d.set_item("cells", (summary.cells.start, summary.cells.end))?;
+    d.set_item("format_version", summary.format_version)?;
     d.set_item("voxels", summary.voxels)?;
     d.set_item("file_bytes", summary.file_bytes)?;
     d.set_item("input_bytes", summary.input_bytes)?;

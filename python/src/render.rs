@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use dagtrace::Tracer;
+use dagfmt::AnyDag;
 use dagtrace::camera::Camera;
 use dagtrace::lit::{LitOptions, render_lit};
 use dagtrace::render::{Shade, render as render_shaded, shade_hits};
@@ -19,7 +19,7 @@ use pyo3::prelude::*;
 
 use crate::errors;
 use crate::file::{PyDag, open};
-use crate::trace::check_level;
+use crate::trace::{check_level, cpu_tracer};
 
 /// What `render` is asked for, beyond the file.
 pub(crate) struct View {
@@ -123,13 +123,23 @@ impl PyDag {
     ) -> PyResult<Bound<'py, PyArray3<u8>>> {
         let dag = self.dag(py)?;
         check_level(v.level, dag.header().depth)?;
+        if v.gpu && v.shade.is_none() && matches!(dag, AnyDag::V2(_)) {
+            return Err(errors::plain(
+                py,
+                "GpuError",
+                format!(
+                    "{}: backend=\"gpu\": the GPU's lit render reads format 1 files only; use shade=\"normal\" (traced on the GPU), backend=\"cpu\", or `dagtool upgrade FILE -o OUT --format-version 1`",
+                    self.path
+                ),
+            ));
+        }
         let gpu = if v.gpu {
             Some(self.gpu_tracer(py)?)
         } else {
             None
         };
         let pixels = py.detach(|| -> Result<Vec<u8>, String> {
-            let tracer = Tracer::new(&dag).map_err(|e| e.to_string())?;
+            let tracer = cpu_tracer(&dag).map_err(|e| e.to_string())?;
             let aspect = f64::from(v.width) / f64::from(v.height);
             let camera = match (v.camera_pos, v.look_at) {
                 (Some(position), Some(look_at)) => Camera {
@@ -138,9 +148,20 @@ impl PyDag {
                     up: [0.0, 1.0, 0.0],
                     fov_y_degrees: v.fov,
                 },
+                // The automatic view, as `dagtrace render` frames each version.
                 _ => Camera {
                     fov_y_degrees: v.fov,
-                    ..Camera::automatic(&dag, aspect)
+                    ..match &dag {
+                        AnyDag::V1(d) => Camera::automatic(d, aspect),
+                        AnyDag::V2(d) => match tracer.occupied_box() {
+                            Some((lo, hi)) => Camera::looking_at_box(lo, hi, aspect),
+                            None => Camera::looking_at_cube(
+                                d.header().root_min,
+                                d.header().root_size,
+                                aspect,
+                            ),
+                        },
+                    }
                 },
             };
             let frame = camera.frame().map_err(|e| e.to_string())?;

@@ -2,9 +2,10 @@
 
 use std::sync::Arc;
 
+use dagfmt::AnyDag;
 use dagfmt::batch::{Hit, Ray};
-use dagtrace::Tracer;
 use dagtrace::gpu::{GpuOptions, GpuTracer};
+use dagtrace::{TraceError, Tracer};
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
@@ -226,7 +227,11 @@ impl PyDag {
             return Ok(Arc::clone(gpu));
         }
         let dag = self.dag(py)?;
-        let made = py.detach(|| GpuTracer::new(&dag, &GpuOptions::default()));
+        let options = GpuOptions::default();
+        let made = py.detach(|| match &dag {
+            AnyDag::V1(d) => GpuTracer::new(d, &options),
+            AnyDag::V2(d) => GpuTracer::new_v2(d.header(), d.levels(), d.color_table(), &options),
+        });
         let gpu = Arc::new(
             made.map_err(|e| errors::plain(py, "GpuError", format!("backend=\"gpu\": {e}")))?,
         );
@@ -236,6 +241,16 @@ impl PyDag {
 }
 
 /// Checks a level of detail against the file's depth.
+/// The CPU tracer of a file of either version: a 2.0 file's levels are
+/// traced as they are (`Tracer::from_v2`), with the answers of the 1.0 file
+/// of the same voxels.
+pub(crate) fn cpu_tracer<'a>(dag: &AnyDag<'a>) -> Result<Tracer<'a>, TraceError> {
+    match dag {
+        AnyDag::V1(d) => Tracer::new(d),
+        AnyDag::V2(d) => Tracer::from_v2(d),
+    }
+}
+
 pub(crate) fn check_level(level: Option<u8>, depth: u8) -> PyResult<()> {
     match level {
         Some(l) if !(1..=depth).contains(&l) => Err(PyValueError::new_err(format!(
@@ -300,7 +315,7 @@ impl PyDag {
                     columns.fill(0, &gpu.trace(&rays).map_err(|e| e.to_string())?);
                 }
                 None => {
-                    let tracer = Tracer::new(&dag).map_err(|e| e.to_string())?;
+                    let tracer = cpu_tracer(&dag).map_err(|e| e.to_string())?;
                     let mut rays = Vec::with_capacity(CHUNK_RAYS.min(n));
                     let mut hits = vec![Hit::MISS; CHUNK_RAYS.min(n)];
                     for first in (0..n).step_by(CHUNK_RAYS) {

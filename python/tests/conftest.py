@@ -96,11 +96,13 @@ def sphere_obj(tmp_path_factory) -> Path:
     return write_sphere_obj(tmp_path_factory.mktemp("mesh") / "sphere.obj")
 
 
-@pytest.fixture(scope="session")
-def sphere_vdag(tmp_path_factory, sphere_obj, dagtool) -> Path:
-    """The sphere at depth 7 with its colours, converted by dagtool."""
-    out = tmp_path_factory.mktemp("vdag") / "sphere.vdag"
-    run(dagtool, "convert", sphere_obj, "-o", out, "--depth", "7", "--colors", "--solid", "--quiet")
+@pytest.fixture(scope="session", params=[1, 2], ids=["v1", "v2"])
+def sphere_vdag(request, tmp_path_factory, sphere_obj, dagtool) -> Path:
+    """The sphere at depth 7 with its colours, converted by dagtool, in
+    format 1.0 and in format 2.0 (each test that takes it runs on both)."""
+    out = tmp_path_factory.mktemp("vdag") / f"sphere-v{request.param}.vdag"
+    run(dagtool, "convert", sphere_obj, "-o", out, "--depth", "7", "--colors", "--solid", "--quiet",
+        "--format-version", request.param)
     return out
 
 

@@ -61,6 +61,7 @@ def test_mesh_is_byte_identical(client, tmp_path, sphere_obj, dagtool):
     out = tmp_path / "dask.vdag"
     summary = vdag.distributed.convert(sphere_obj, out, 7, client, region_level=1, bounds=BOUNDS)
     assert out.read_bytes() == want
+    assert vdag.open(out).version == (2, 0), "the default format, as dagtool convert's"
     assert len(summary["regions"]) == 8 and sum(r["voxels"] for r in summary["regions"]) == summary["voxels"]
     # Where each region's time went, and which worker ran it.
     assert all("parse_seconds" in r and "build_seconds" in r and r["worker"] for r in summary["regions"])
@@ -94,6 +95,14 @@ def test_coloured_mesh_is_byte_identical(client, tmp_path, sphere_obj, dagtool):
             color_error=2 if extra else None, fan_in=4,
         )
         assert out.read_bytes() == want, name
+
+
+def test_format_1_is_byte_identical(client, tmp_path, sphere_obj, dagtool):
+    want = whole(dagtool, sphere_obj, tmp_path / "cli.vdag", 6, "--colors", "--format-version", "1")
+    out = tmp_path / "dask.vdag"
+    vdag.distributed.convert(sphere_obj, out, 6, client, region_level=1, bounds=BOUNDS, colors=True, format_version=1)
+    assert out.read_bytes() == want
+    assert vdag.open(out).version[0] == 1
 
 
 def test_point_cloud_is_byte_identical(client, tmp_path, dagtool):

@@ -22,9 +22,10 @@ def morton(xyz: np.ndarray) -> np.ndarray:
     return code
 
 
-@pytest.fixture(scope="module")
-def voxel_list(tmp_path_factory, dagtool):
-    """A random voxel list at depth 6 and the .vdag dagtool makes of it."""
+@pytest.fixture(scope="module", params=[1, 2], ids=["v1", "v2"])
+def voxel_list(request, tmp_path_factory, dagtool):
+    """A random voxel list at depth 6 and the .vdag dagtool makes of it, in
+    format 1.0 and in format 2.0."""
     rng = np.random.default_rng(45)
     xyz = np.unique(rng.integers(0, 64, size=(3000, 3)), axis=0)
     # A dense block too, so that the DAG has full leaves and shared subtrees.
@@ -34,7 +35,7 @@ def voxel_list(tmp_path_factory, dagtool):
     listing = folder / "voxels.txt"
     listing.write_text("".join(f"{x} {y} {z}\n" for x, y, z in xyz))
     out = folder / "voxels.vdag"
-    run(dagtool, "convert", listing, "-o", out, "--depth", "6", "--quiet")
+    run(dagtool, "convert", listing, "-o", out, "--depth", "6", "--quiet", "--format-version", request.param)
     return xyz, out
 
 
@@ -54,8 +55,21 @@ def test_header_and_levels_are_those_of_dagtool_info(voxel_list, dagtool):
     assert dag.optional_features == info["optional_features"]
     assert list(dag.version) == info["version"]
     assert dag.color_format is None
-    mine = [{k: level[k] for k in ("level", "kind", "nodes", "bytes", "pointer_width")} for level in dag.levels]
-    theirs = [{k: level[k] for k in ("level", "kind", "nodes", "bytes", "pointer_width")} for level in info["levels"]]
+    if dag.version[0] == 1:
+        keys = ("level", "kind", "nodes", "bytes", "pointer_width")
+        mine = [{k: level[k] for k in keys} for level in dag.levels]
+        theirs = [{k: level[k] for k in keys} for level in info["levels"]]
+        assert all(level["widths"] is None for level in dag.levels)
+        assert info["v2_levels"] is None
+    else:
+        # A 2.0 file's levels are info's v2_levels (its levels describe the
+        # DAG of the same voxels in 1.0 form).
+        assert dag.version == (2, 0)
+        mine = [(level["kind"], level["nodes"], level["bytes"], list(level["widths"])) for level in dag.levels]
+        theirs = [(level["kind"], level["items"], level["bytes"], level["widths"]) for level in info["v2_levels"]]
+        assert [level["level"] for level in dag.levels] == list(range(dag.depth - 1))
+        assert all(level["pointer_width"] is None for level in dag.levels)
+        assert sum(level["bytes"] for level in dag.levels) == info["level_bytes"]
     assert mine == theirs
     # The sections lie in the file in level order, 8-byte aligned.
     offsets = [level["offset"] for level in dag.levels]

@@ -1,8 +1,8 @@
 """Read, trace, render and build .vdag sparse voxel DAGs with numpy.
 
 >>> import vdag
->>> dag = vdag.open("bunny.vdag")        # memory-mapped, validated
->>> dag.depth, dag.voxel_count
+>>> dag = vdag.open("bunny.vdag")        # format 1.x or 2.0, memory-mapped, validated
+>>> dag.version, dag.depth, dag.voxel_count
 >>> xyz = dag.voxels()                    # (N, 3) uint32, Morton order
 >>> hits = dag.trace(origins, directions) # (N, 3) float arrays
 >>> hits.hit, hits.t, hits.cell, hits.face, hits.index

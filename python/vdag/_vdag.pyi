@@ -15,14 +15,15 @@ _Shade = Literal["lit", "normal", "depth", "color"]
 _Vec3 = Union[Sequence[float], npt.ArrayLike]
 
 class Dag:
-    """A .vdag file opened for reading (memory-mapped); made by :func:`open`."""
+    """A .vdag file of format 1.x or 2.0 opened for reading (memory-mapped);
+    made by :func:`open`. Every method answers alike for both versions."""
 
     @property
     def path(self) -> str:
         """The path the file was opened from."""
     @property
     def version(self) -> tuple[int, int]:
-        """The format version as (major, minor)."""
+        """The format version as (major, minor): (1, minor) or (2, 0)."""
     @property
     def depth(self) -> int:
         """The depth D: 2**D voxels along each axis."""
@@ -58,8 +59,10 @@ class Dag:
         """The colour section's kind, or None without colours."""
     @property
     def levels(self) -> list[dict[str, Any]]:
-        """One dict per level, root first: level, kind ("node" or "leaf"),
-        nodes, bytes, pointer_width, offset."""
+        """One dict per level section, root first: level, kind ("node" or
+        "leaf"), nodes, bytes, offset, pointer_width (1.x: bytes per pointer;
+        2.0: None) and widths (2.0: the three reference widths in bits;
+        1.x: None)."""
     def voxels(self) -> npt.NDArray[np.uint32]:
         """Every set voxel as an (N, 3) uint32 array, in Morton order."""
     def iter_voxels(self, chunk: int = 1 << 20) -> "VoxelChunks":
@@ -133,8 +136,9 @@ class TraceResult:
     def __len__(self) -> int: ...
 
 def open(path: _Path, validate: bool = True) -> Dag:
-    """Opens (memory-maps) a .vdag or .vdag.zst file; validates it unless
-    validate=False (InvalidFileError with the spec's code)."""
+    """Opens (memory-maps) a .vdag or .vdag.zst file of format 1.x or 2.0;
+    validates it unless validate=False (InvalidFileError with the spec's
+    code)."""
 
 def validate(path: _Path) -> list[tuple[str, int, str]]:
     """Every violation of the format as (code, offset, message); [] if valid."""
@@ -153,9 +157,11 @@ def convert(
     force: bool = False,
     tmp_dir: Optional[_Path] = None,
     progress: Optional[Callable[[str, int, int], object]] = None,
+    format_version: Literal[1, 2] = 2,
 ) -> dict[str, Any]:
-    """dagtool convert: the same output bytes for the same options; progress
-    is called as progress(phase, done, total)."""
+    """dagtool convert: the same output bytes for the same options (format
+    2.0 by default, 1.0 with format_version=1); progress is called as
+    progress(phase, done, total)."""
 
 def render(
     path: _Path,
@@ -191,7 +197,7 @@ def convert_region(
     cache_input: bool = True,
 ) -> dict[str, Any]:
     """dagtool convert --region: one cell ("K:X,Y,Z" or (K, X, Y, Z)) of the
-    root cube into a part (spec §24); input may be a list of point-cloud
+    root cube into a part (spec §24; always format 1); input may be a list of point-cloud
     tiles read as one. With cache_input a mesh stays in this process for the
     next region of the same file (clear_input_cache frees it). The dict
     gives where the time went: parse_seconds, bin_seconds, load_seconds,
@@ -207,9 +213,11 @@ def merge(
     memory_limit: Optional[Union[int, str]] = None,
     force: bool = False,
     tmp_dir: Optional[_Path] = None,
+    format_version: Literal[1, 2] = 2,
 ) -> dict[str, Any]:
-    """dagtool merge: parts into a larger part or, covering the cube, the
-    whole conversion's file byte for byte; errors carry E090-E098."""
+    """dagtool merge: parts into a larger part (format 1) or, covering the
+    cube, the whole conversion's file byte for byte, of format_version;
+    errors carry E090-E098."""
 
 def regions(level: int) -> list[tuple[int, int, int, int]]:
     """The regions (K, X, Y, Z) of level K in Morton order."""

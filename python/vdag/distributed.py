@@ -114,16 +114,20 @@ def _clear_cache() -> bool:
     return _vdag.clear_input_cache()
 
 
-def _merge(infos: list[dict[str, Any]], out: str, memory_limit) -> dict[str, Any]:
+def _merge(infos: list[dict[str, Any]], out: str, memory_limit, format_version: int = 2) -> dict[str, Any]:
     """A worker's task: merge the parts of ``infos`` (or pass an error on).
     It overwrites its output: a leftover of an attempt on a worker that died
-    (the final output was checked before the job began)."""
+    (the final output was checked before the job began). A merge short of
+    the whole volume writes a part (format 1); ``format_version`` is that
+    of the whole volume."""
     for i in infos:
         if "error" in i:
             return i
     try:
         t = time.perf_counter()
-        info = _vdag.merge([i["part"] for i in infos], out, memory_limit=memory_limit, force=True)
+        info = _vdag.merge(
+            [i["part"] for i in infos], out, memory_limit=memory_limit, force=True, format_version=format_version
+        )
         info["part"] = out
         info["wall_seconds"] = time.perf_counter() - t
         info["inputs"] = len(infos)
@@ -156,6 +160,7 @@ def convert(
     force: bool = False,
     scratch: Optional[_PathLike] = None,
     fan_in: int = 8,
+    format_version: int = 2,
     _task_delay: float = 0.0,
 ) -> dict[str, Any]:
     """Converts ``input`` to ``output`` at ``depth`` on the Dask ``client``'s
@@ -170,8 +175,8 @@ def convert(
 
     ``bounds`` ``(xmin, ymin, zmin, size)`` is the root cube, required: every
     region must use the same one. ``colors``, ``solid``, ``color_error``,
-    ``point_radius`` are those of :func:`vdag.convert`; ``memory_limit`` is
-    each task's. ``input`` may be a list of LAS/LAZ tiles. Merges take up to
+    ``point_radius`` and ``format_version`` (2, the default, or 1) are those
+    of :func:`vdag.convert`; ``memory_limit`` is each task's. ``input`` may be a list of LAS/LAZ tiles. Merges take up to
     ``fan_in`` parts each. Raises ``vdag.ConvertError`` (nothing written)
     when a region or a merge fails, naming it.
     """
@@ -224,6 +229,7 @@ def convert(
                     g,
                     output if final else str(scratch / f"merge-{step}-{j}.part"),
                     memory_limit,
+                    format_version,
                     key=f"vdag-merge-{step}-{j}-{token}",
                     pure=False,
                 )

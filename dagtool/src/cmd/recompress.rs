@@ -1,13 +1,14 @@
 //! `dagtool recompress`: re-encodes a file's colours as a PACKED_COLORS
 //! section (spec §12.6) within an error bound, from raw VOXEL_COLORS or from
-//! packed colours. The geometry's sections are copied byte for byte.
+//! packed colours. The geometry's sections are copied byte for byte, in the
+//! file's format version (1.x or 2.0).
 
 use std::path::Path;
 
 use dagfmt::assemble::{FileHeader, FileLayout, SectionInfo};
 use dagfmt::packed_colors::{MAX_ERROR_BOUND, PackedColorEncoder, PackedSummary};
 use dagfmt::validate::validate;
-use dagfmt::{Dag, SectionKind};
+use dagfmt::{AnyDag, SectionKind};
 
 use crate::cmd::FileBytes;
 use crate::error::ConvertError;
@@ -55,8 +56,8 @@ pub fn recompress(
             if errors.len() == 1 { "" } else { "s" }
         )));
     }
-    let dag =
-        Dag::open(bytes).map_err(|e| ConvertError::Input(format!("{}: {e}", input.display())))?;
+    let dag = AnyDag::open(bytes)
+        .map_err(|e| ConvertError::Input(format!("{}: {e}", input.display())))?;
     let Some(table) = dag.color_table() else {
         return Err(ConvertError::Input(format!(
             "{} has no colours to recompress",
@@ -80,6 +81,8 @@ pub fn recompress(
     let mut sections = Vec::new();
     let mut sources: Vec<&[u8]> = Vec::new();
     let mut input_color_bytes = 0;
+    // A 2.0 file's node levels keep their reference widths (spec §23.10).
+    let mut widths = Vec::new();
     for entry in dag.sections() {
         let data = &bytes[entry.offset as usize..(entry.offset + entry.length) as usize];
         match entry.kind {
@@ -94,6 +97,9 @@ pub fn recompress(
                 sources.push(&section);
             }
             kind => {
+                if kind == SectionKind::NodeLevel {
+                    widths.push(entry.widths);
+                }
                 sections.push(SectionInfo {
                     kind,
                     level: entry.level,
@@ -107,16 +113,17 @@ pub fn recompress(
             }
         }
     }
-    let layout = FileLayout::new(
-        FileHeader {
-            depth: header.depth,
-            attributes: header.attribute_kind,
-            root_min: header.root_min,
-            root_size: header.root_size,
-            voxel_count: header.voxel_count,
-        },
-        sections,
-    )
+    let file_header = FileHeader {
+        depth: header.depth,
+        attributes: header.attribute_kind,
+        root_min: header.root_min,
+        root_size: header.root_size,
+        voxel_count: header.voxel_count,
+    };
+    let layout = match dag {
+        AnyDag::V1(_) => FileLayout::new(file_header, sections),
+        AnyDag::V2(_) => FileLayout::new_v2(file_header, sections, widths),
+    }
     .map_err(|e| ConvertError::Input(format!("{}: {e}", input.display())))?;
     let output_bytes = write_atomic(output, force, |w| {
         layout.write_to(w, |index, sink| {

@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::common::{convert, voxel_codes};
+use crate::common::{colour_bytes, convert, voxel_codes};
 use crate::reference;
 
 const OBJ: &str = "\
@@ -42,8 +42,8 @@ fn first_triangle_colour_wins() {
         let out = dir.path().join(format!("c{depth}.vdag"));
         convert(&obj, &out, depth, &["--colors"]);
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
-        let colors = dag.colors().expect("a colour section");
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+        let colors = colour_bytes(&dag).expect("a colour section");
         let expected = reference::surface(&reference::snapped(&refmesh, depth), depth);
         let codes = voxel_codes(&out);
         assert_eq!(colors.len(), 4 * codes.len());
@@ -73,8 +73,8 @@ fn missing_material_library_is_white() {
     let out = dir.path().join("w.vdag");
     convert(&obj, &out, 4, &["--colors"]);
     let bytes = std::fs::read(&out).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
-    assert!(dag.colors().unwrap().iter().all(|&b| b == 255));
+    let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+    assert!(colour_bytes(&dag).unwrap().iter().all(|&b| b == 255));
 }
 
 #[test]
@@ -88,8 +88,8 @@ fn solid_interior_is_white() {
     let out = dir.path().join("s.vdag");
     convert(&obj, &out, 5, &["--colors", "--solid"]);
     let bytes = std::fs::read(&out).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
-    let colors = dag.colors().unwrap();
+    let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+    let colors = colour_bytes(&dag).unwrap();
     let green = colors.chunks(4).filter(|c| *c == [0, 255, 0, 255]).count();
     let white = colors.chunks(4).filter(|c| *c == [255; 4]).count();
     assert_eq!(green + white, colors.len() / 4);
@@ -180,8 +180,8 @@ fn textures_are_sampled_at_the_nearest_point_of_the_triangle() {
         let out = dir.path().join(format!("t{depth}.vdag"));
         convert(&obj, &out, depth, &["--colors"]);
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
-        let colors = dag.colors().expect("a colour section");
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+        let colors = colour_bytes(&dag).expect("a colour section");
         let (root_min, size) = reference::root_cube(&refmesh, depth);
         let voxel = size / f64::from(1u32 << depth);
         let expected = reference::surface(&reference::snapped(&refmesh, depth), depth);
@@ -240,8 +240,8 @@ fn voxels_larger_than_texels_take_their_mean() {
         let out = dir.path().join(format!("g{depth}.vdag"));
         convert(&obj, &out, depth, &["--colors"]);
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
-        let colors = dag.colors().unwrap();
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+        let colors = colour_bytes(&dag).unwrap();
         let mut seen = std::collections::BTreeSet::new();
         for c in colors.chunks(4) {
             assert!(allowed.iter().any(|a| a == c), "depth {depth}: {c:?}");
@@ -282,9 +282,9 @@ fn unreadable_texture_falls_back_to_kd_with_a_warning() {
             "{map_kd}: {text}"
         );
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
         assert!(
-            dag.colors()
+            colour_bytes(&dag)
                 .unwrap()
                 .chunks(4)
                 .all(|c| c == [255, 128, 255, 255])

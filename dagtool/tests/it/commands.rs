@@ -4,15 +4,25 @@ use std::path::{Path, PathBuf};
 
 use crate::common::{box_mesh, convert, run, run_ok, sphere_mesh};
 
-/// A small valid file and its directory.
+/// A small valid file (of the default format, 2.0) and its directory.
 fn sample() -> (tempfile::TempDir, PathBuf) {
+    sample_with(&[])
+}
+
+/// The sample in format 1.0, for the tests of 1.0 records and statistics
+/// (format2.rs tests `info` and `dump` on 2.0 files).
+fn sample_v1() -> (tempfile::TempDir, PathBuf) {
+    sample_with(&["--format-version", "1"])
+}
+
+fn sample_with(extra: &[&str]) -> (tempfile::TempDir, PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let obj = dir.path().join("s.obj");
     let mut m = sphere_mesh([0.0; 3], 1.0, 2);
     m.append(&box_mesh([-1.5, -0.2, -0.2], [-0.5, 0.2, 0.2]));
     m.write(&obj);
     let out = dir.path().join("s.vdag");
-    convert(&obj, &out, 6, &[]);
+    convert(&obj, &out, 6, extra);
     (dir, out)
 }
 
@@ -20,10 +30,16 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-/// Offset of the first leaf-level section byte (to corrupt a section).
+/// Offset of the first leaf-level section byte (to corrupt a section), in a
+/// file of either version.
 fn leaf_section_offset(bytes: &[u8]) -> usize {
-    let dag = dagfmt::Dag::open(bytes).unwrap();
-    dag.levels().last().unwrap().file_offset as usize
+    let dag = dagfmt::AnyDag::open(bytes).unwrap();
+    let leaf = dag
+        .sections()
+        .iter()
+        .find(|s| s.kind == dagfmt::SectionKind::LeafLevel)
+        .unwrap();
+    leaf.offset as usize
 }
 
 #[test]
@@ -83,7 +99,7 @@ fn validate_reports_and_exit_codes() {
 
 #[test]
 fn info_matches_the_statistics() {
-    let (_dir, file) = sample();
+    let (_dir, file) = sample_v1();
     let bytes = std::fs::read(&file).unwrap();
     let dag = dagfmt::Dag::open(&bytes).unwrap();
     let stats = dagfmt::stats::analyze(&dag).unwrap();
@@ -139,7 +155,7 @@ fn info_matches_the_statistics() {
 
 #[test]
 fn dump_lists_real_bytes() {
-    let (_dir, file) = sample();
+    let (_dir, file) = sample_v1();
     let bytes = std::fs::read(&file).unwrap();
     let dag = dagfmt::Dag::open(&bytes).unwrap();
     let o = run_ok(&["dump", s(&file), "--nodes", "3"]);

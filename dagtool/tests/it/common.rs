@@ -197,15 +197,10 @@ pub fn sphere_mesh(center: [f64; 3], radius: f64, subdivisions: u32) -> ObjMesh 
     m
 }
 
-/// The voxels of a `.vdag` file as sorted Morton codes.
+/// The voxels of a `.vdag` file of either version as sorted Morton codes.
 pub fn voxel_codes(path: &Path) -> Vec<u64> {
     let bytes = std::fs::read(path).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
-    let mut it = dag.voxels();
-    let mut codes = Vec::new();
-    while let Some(code) = it.next_morton() {
-        codes.push(code.unwrap());
-    }
+    let codes = dagfmt::AnyDag::open(&bytes).unwrap().voxel_codes().unwrap();
     assert!(
         codes.windows(2).all(|w| w[0] < w[1]),
         "voxels come in Morton order"
@@ -247,4 +242,10 @@ pub fn dir_entries(dir: &Path) -> Vec<String> {
         .collect();
     v.sort();
     v
+}
+
+/// The voxel colours (RGBA8 in voxel order, raw or packed, decoded) of a
+/// file of either version, or `None` without colours.
+pub fn colour_bytes(dag: &dagfmt::AnyDag<'_>) -> Option<Vec<u8>> {
+    dag.color_table().map(|t| t.iter().flatten().collect())
 }

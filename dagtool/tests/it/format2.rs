@@ -1,6 +1,6 @@
-//! Format 2.0 through the command line (spec §23.11): `convert
-//! --format-version 2`, `upgrade` both ways, `--attributes none`, and
-//! `validate`, `info` and `dump` on 2.0 files.
+//! Format 2.0 through the command line (spec §23.11): `convert` (2.0 by
+//! default, 1.0 with `--format-version 1`), `upgrade` both ways,
+//! `--attributes none`, and `validate`, `info` and `dump` on 2.0 files.
 
 use std::path::Path;
 
@@ -39,8 +39,8 @@ fn convert_and_upgrade_round_trip_between_the_versions() {
     let mesh = scene(dir.path());
     let v1 = dir.path().join("a1.vdag");
     let v2 = dir.path().join("a2.vdag");
-    convert(&mesh, &v1, 7, &["--colors"]);
-    convert(&mesh, &v2, 7, &["--colors", "--format-version", "2"]);
+    convert(&mesh, &v1, 7, &["--colors", "--format-version", "1"]);
+    convert(&mesh, &v2, 7, &["--colors"]);
     let (codes, kind, colors, version) = contents(&v1);
     assert_eq!(version, 1);
     assert!(codes.len() > 1000, "a real scene: {} voxels", codes.len());
@@ -56,6 +56,10 @@ fn convert_and_upgrade_round_trip_between_the_versions() {
     for f in [&v1, &v2] {
         run_ok(&["validate", s(f)]);
     }
+    // The default is 2.0: `--format-version 2` writes the same bytes.
+    let explicit = dir.path().join("explicit.vdag");
+    convert(&mesh, &explicit, 7, &["--colors", "--format-version", "2"]);
+    assert_eq!(std::fs::read(&explicit).unwrap(), b2);
     // Out of core (a spilled build), the 2.0 output is the same, byte for byte.
     let spilled = dir.path().join("spilled.vdag");
     convert(
@@ -64,8 +68,6 @@ fn convert_and_upgrade_round_trip_between_the_versions() {
         7,
         &[
             "--colors",
-            "--format-version",
-            "2",
             "--spill-cells-per-run",
             "2",
             "--spill-buckets",
@@ -99,7 +101,7 @@ fn attributes_none_in_both_versions() {
     let dir = tempfile::tempdir().unwrap();
     let mesh = scene(dir.path());
     let counts = dir.path().join("counts.vdag");
-    convert(&mesh, &counts, 6, &[]);
+    convert(&mesh, &counts, 6, &["--format-version", "1"]);
     let (codes, kind, _, _) = contents(&counts);
     assert_eq!(kind, 1);
     for version in ["1", "2"] {
@@ -147,8 +149,8 @@ fn info_dump_and_validate_read_2_0_files() {
     let mesh = scene(dir.path());
     let v1 = dir.path().join("b1.vdag");
     let v2 = dir.path().join("b2.vdag");
-    convert(&mesh, &v1, 6, &[]);
-    convert(&mesh, &v2, 6, &["--format-version", "2"]);
+    convert(&mesh, &v1, 6, &["--format-version", "1"]);
+    convert(&mesh, &v2, 6, &[]);
     let info = String::from_utf8(run_ok(&["info", s(&v2), "--json"]).stdout).unwrap();
     let doc: serde_json::Value = serde_json::from_str(&info).unwrap();
     let info1 = String::from_utf8(run_ok(&["info", s(&v1), "--json"]).stdout).unwrap();
@@ -185,6 +187,7 @@ fn info_dump_and_validate_read_2_0_files() {
     let out = run(&["validate", s(&bad)]);
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stdout).contains("E070"));
-    // And the 1.0 helper of the other tests still reads 1.0 files only.
+    // The voxel helper of the other tests reads either version alike.
     assert!(!voxel_codes(&v1).is_empty());
+    assert_eq!(voxel_codes(&v2), voxel_codes(&v1));
 }

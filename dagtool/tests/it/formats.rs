@@ -25,8 +25,8 @@ pub fn formats_dir() -> Option<PathBuf> {
 /// The colours of a `.vdag` file (RGBA8 per voxel, Morton order).
 fn colours(path: &Path) -> Vec<[u8; 4]> {
     let bytes = std::fs::read(path).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
-    dag.colors()
+    let dag = dagfmt::AnyDag::open(&bytes).unwrap();
+    crate::common::colour_bytes(&dag)
         .expect("a colour section")
         .chunks_exact(4)
         .map(|c| [c[0], c[1], c[2], c[3]])
@@ -35,7 +35,7 @@ fn colours(path: &Path) -> Vec<[u8; 4]> {
 
 fn header(path: &Path) -> dagfmt::reader::Header {
     let bytes = std::fs::read(path).unwrap();
-    dagfmt::Dag::open(&bytes).unwrap().header().clone()
+    dagfmt::AnyDag::open(&bytes).unwrap().header().clone()
 }
 
 fn s(p: &Path) -> &str {

@@ -50,7 +50,7 @@ fn check_no_holes(obj: &Path, depth: u8, samples_per_triangle: usize) {
     let out = dir.path().join("m.vdag");
     convert(obj, &out, depth, &[]);
     let bytes = std::fs::read(&out).unwrap();
-    let dag = dagfmt::Dag::open(&bytes).unwrap();
+    let dag = dagfmt::AnyDag::open(&bytes).unwrap();
     let refmesh = reference::load(obj);
     let tris = reference::in_voxels(&refmesh, depth);
     let mut rng = Lcg(3);

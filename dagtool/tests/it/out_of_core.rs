@@ -6,14 +6,16 @@
 
 use std::path::Path;
 
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 use dagfmt::assemble::{FileHeader, FileLayout};
 use dagfmt::builder::DagBuilder;
 use dagfmt::layout::AttributeKind;
 use dagtool::external::{DagSink, Scratch, SpillSettings};
 use proptest::prelude::*;
 
-use crate::common::{ObjMesh, box_mesh, dir_entries, meshes_dir, run, run_ok, sphere_mesh};
+use crate::common::{
+    ObjMesh, box_mesh, colour_bytes, dir_entries, meshes_dir, run, run_ok, sphere_mesh,
+};
 use crate::surface::Lcg;
 
 /// Builds the DAG of `voxels` through a [`DagSink`] with `settings`, and
@@ -61,18 +63,14 @@ fn sink_bytes(
     (bytes, runs)
 }
 
-/// The voxels of a file, in Morton order.
-fn voxels_of(dag: &Dag<'_>) -> Vec<u64> {
-    let mut it = dag.voxels();
-    let mut codes = Vec::new();
-    while let Some(code) = it.next_morton() {
-        codes.push(code.unwrap());
-    }
-    codes
+/// The voxels of a file of either version, in Morton order.
+fn voxels_of(dag: &AnyDag<'_>) -> Vec<u64> {
+    dag.voxel_codes().unwrap()
 }
 
 /// Asserts that two files hold the same DAG level by level (distinct nodes,
-/// bytes and pointer width of every section), the same voxels and the same
+/// bytes and pointer or reference widths of every section), the same voxels
+/// and the same
 /// colour per voxel, that both validate, and finally that they are the same
 /// bytes (the merge lays every level out in the in-memory build's order).
 fn assert_same_dag(in_core: &[u8], external: &[u8], what: &str) {
@@ -85,7 +83,11 @@ fn assert_same_dag(in_core: &[u8], external: &[u8], what: &str) {
         report.is_empty(),
         "{what}: out-of-core file invalid: {report:?}"
     );
-    let (a, b) = (Dag::open(in_core).unwrap(), Dag::open(external).unwrap());
+    let (a, b) = (
+        AnyDag::open(in_core).unwrap(),
+        AnyDag::open(external).unwrap(),
+    );
+    assert_eq!(a.version_major(), b.version_major(), "{what}: version");
     assert_eq!(a.sections().len(), b.sections().len(), "{what}: sections");
     for (sa, sb) in a.sections().iter().zip(b.sections()) {
         assert_eq!(
@@ -94,14 +96,16 @@ fn assert_same_dag(in_core: &[u8], external: &[u8], what: &str) {
                 sa.level,
                 sa.item_count,
                 sa.length,
-                sa.pointer_width
+                sa.pointer_width,
+                sa.widths
             ),
             (
                 sb.kind,
                 sb.level,
                 sb.item_count,
                 sb.length,
-                sb.pointer_width
+                sb.pointer_width,
+                sb.widths
             ),
             "{what}: section of level {}",
             sa.level
@@ -110,7 +114,11 @@ fn assert_same_dag(in_core: &[u8], external: &[u8], what: &str) {
     let (va, vb) = (voxels_of(&a), voxels_of(&b));
     assert_eq!(va.len(), vb.len(), "{what}: voxel count");
     assert!(va == vb, "{what}: voxel sets differ");
-    assert_eq!(a.colors(), b.colors(), "{what}: colours per voxel");
+    assert_eq!(
+        colour_bytes(&a),
+        colour_bytes(&b),
+        "{what}: colours per voxel"
+    );
     assert!(in_core == external, "{what}: bytes differ");
 }
 

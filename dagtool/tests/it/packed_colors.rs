@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 use dagfmt::packed_colors::{PackedColors, encode};
 use dagtool::external::{ColourSink, Scratch};
 
@@ -82,12 +82,29 @@ fn write_cloud(path: &Path, n: usize) {
 }
 
 fn decoded(bytes: &[u8]) -> Vec<[u8; 4]> {
-    Dag::open(bytes)
+    AnyDag::open(bytes)
         .unwrap()
         .color_table()
         .unwrap()
         .iter()
         .collect()
+}
+
+/// A file's level sections (their bytes), whether it has raw colours, and
+/// its packed colours, for either format version.
+fn geometry_and_colours(bytes: &[u8]) -> (Vec<&[u8]>, bool, Option<PackedColors<'_>>) {
+    match AnyDag::open(bytes).unwrap() {
+        AnyDag::V1(d) => (
+            d.levels().iter().map(|l| l.bytes).collect(),
+            d.colors().is_some(),
+            d.packed_colors(),
+        ),
+        AnyDag::V2(d) => (
+            d.levels().iter().map(|l| l.bytes).collect(),
+            d.colors().is_some(),
+            d.packed_colors(),
+        ),
+    }
 }
 
 fn s(p: &Path) -> &str {
@@ -96,6 +113,13 @@ fn s(p: &Path) -> &str {
 
 #[test]
 fn recompress_and_convert_agree_and_keep_the_bound() {
+    // In both format versions: recompress keeps the file's version.
+    for version in ["1", "2"] {
+        recompress_and_convert_agree(version);
+    }
+}
+
+fn recompress_and_convert_agree(version: &str) {
     let dir = tempfile::tempdir().unwrap();
     let cloud = dir.path().join("cloud.ply");
     write_cloud(&cloud, 5000);
@@ -109,11 +133,13 @@ fn recompress_and_convert_agree_and_keep_the_bound() {
         "7",
         "--colors",
         "-q",
+        "--format-version",
+        version,
     ]);
     let raw_bytes = std::fs::read(&raw).unwrap();
     let source = decoded(&raw_bytes);
-    let raw_dag = Dag::open(&raw_bytes).unwrap();
-    assert!(raw_dag.colors().is_some());
+    let (raw_levels, raw_colours, _) = geometry_and_colours(&raw_bytes);
+    assert!(raw_colours);
     for bound in [0u8, 3, 8] {
         let e = bound.to_string();
         let packed = dir.path().join(format!("packed{bound}.vdag"));
@@ -121,14 +147,16 @@ fn recompress_and_convert_agree_and_keep_the_bound() {
         assert!(String::from_utf8_lossy(&out.stdout).contains("bits per voxel"));
         let bytes = std::fs::read(&packed).unwrap();
         assert!(dagfmt::validate::validate(&bytes).is_empty());
-        let dag = Dag::open(&bytes).unwrap();
-        assert!(dag.colors().is_none());
-        let p = dag.packed_colors().expect("packed colours");
+        assert_eq!(
+            AnyDag::open(&bytes).unwrap().version_major().to_string(),
+            version
+        );
+        let (levels, raw_colours, p) = geometry_and_colours(&bytes);
+        assert!(!raw_colours);
+        let p = p.expect("packed colours");
         assert_eq!(p.trailer().error_bound, bound);
         // The geometry is the same bytes.
-        for (a, b) in raw_dag.levels().iter().zip(dag.levels()) {
-            assert_eq!(a.bytes, b.bytes);
-        }
+        assert_eq!(levels, raw_levels);
         let colors = decoded(&bytes);
         assert_eq!(colors.len(), source.len());
         let mut max = 0;
@@ -155,8 +183,13 @@ fn recompress_and_convert_agree_and_keep_the_bound() {
             "--color-error",
             &e,
             "-q",
+            "--format-version",
+            version,
         ]);
-        assert!(std::fs::read(&converted).unwrap() == bytes, "bound {bound}");
+        assert!(
+            std::fs::read(&converted).unwrap() == bytes,
+            "bound {bound}, format {version}"
+        );
         // info reports the size, the bound and the measured error.
         let info = run_ok(&["info", s(&packed)]);
         let text = String::from_utf8_lossy(&info.stdout);

@@ -229,7 +229,14 @@ fn merged_regions_keep_colours_raw_and_packed() {
     let dag = dagfmt::Dag::open(&bytes).unwrap();
     assert!(dag.packed_colors().is_none() && dag.colors().is_some());
     let whole = std::fs::read(&base.output).unwrap();
-    assert!(dagfmt::Dag::open(&whole).unwrap().packed_colors().is_some());
+    let whole = dagfmt::AnyDag::open(&whole).unwrap();
+    assert_eq!(whole.version_major(), 2, "the default format");
+    assert!(
+        whole
+            .sections()
+            .iter()
+            .any(|s| s.kind == dagfmt::SectionKind::PackedColors)
+    );
 }
 
 #[test]
@@ -256,18 +263,34 @@ fn one_part_holding_everything_is_the_whole_file() {
     let dir = tempfile::tempdir().unwrap();
     let obj = dir.path().join("sphere.obj");
     sphere_mesh([0.0; 3], 0.6, 1).write(&obj);
-    let base = options(&obj, &dir.path().join("whole.vdag"), 6, "-1,-1,-1,2");
+    let mut base = options(&obj, &dir.path().join("whole.vdag"), 6, "-1,-1,-1,2");
+    base.format_version = 1;
     convert(&base).unwrap();
     let mut o = base.clone();
     o.output = dir.path().join("all.part");
     o.region = Some(Region::parse("0:0,0,0").unwrap());
     convert(&o).unwrap();
-    // The part is the whole volume plus its placement; merging it alone
-    // drops the placement.
+    // The part is the whole volume (in 1.0) plus its placement; merging it
+    // alone drops the placement.
     let part = std::fs::read(&o.output).unwrap();
     let whole = std::fs::read(&base.output).unwrap();
     assert_eq!(part.len(), whole.len() + 40 + 48);
-    assert_eq!(merged(&[o.output], &dir.path().join("m.vdag")), whole);
+    let m1 = dir.path().join("m1.vdag");
+    let one = MergeOptions {
+        format_version: 1,
+        ..Default::default()
+    };
+    let summary = merge(std::slice::from_ref(&o.output), &m1, &one).unwrap();
+    assert!(summary.complete && summary.format_version == 1);
+    assert_eq!(std::fs::read(&m1).unwrap(), whole);
+    // By default the merge writes the whole volume as convert does: 2.0.
+    base.format_version = 2;
+    base.output = dir.path().join("whole2.vdag");
+    convert(&base).unwrap();
+    assert_eq!(
+        merged(&[o.output], &dir.path().join("m.vdag")),
+        std::fs::read(&base.output).unwrap()
+    );
 }
 
 #[test]
@@ -280,8 +303,9 @@ fn parts_of_parts_are_parts() {
     let base = options(&obj, &dir.path().join("whole.vdag"), 6, "-1,-1,-1,2");
     let parts = check_identity(&base, 1, "sphere");
     let a = dir.path().join("a.part");
+    // A part is format 1 whatever the version asked for the whole volume.
     let s = merge(&parts[..3], &a, &MergeOptions::default()).unwrap();
-    assert!(!s.complete);
+    assert!(!s.complete && s.format_version == 1);
     assert_eq!(s.cells, 0..3);
     let out = run(&["validate", a.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&out.stdout);
@@ -411,7 +435,25 @@ fn bad_parts_are_refused_with_their_code() {
     );
     let (_, err) = merge_fails(&[&parts[0], &parts[2]], d);
     assert!(err.contains("E097 parts-gap"), "{err}");
-    let (_, err) = merge_fails(&[&shared_parts().0.path().join("whole.vdag")], d);
+    // Ordinary files are not parts: the whole volume in 2.0 (convert's
+    // default) and in 1.0.
+    let whole2 = shared_parts().0.path().join("whole.vdag");
+    let (_, err) = merge_fails(&[&whole2], d);
+    assert!(
+        err.contains("E098 not-a-part") && err.contains("2.0"),
+        "{err}"
+    );
+    let whole1 = d.join("whole1.vdag");
+    let o = run(&[
+        "upgrade",
+        whole2.to_str().unwrap(),
+        "-o",
+        whole1.to_str().unwrap(),
+        "--format-version",
+        "1",
+    ]);
+    assert!(o.status.success());
+    let (_, err) = merge_fails(&[&whole1], d);
     assert!(err.contains("E098 not-a-part"), "{err}");
     // A different depth, and different colours, of the same mesh.
     let obj = two_colour_mesh(d);
@@ -506,6 +548,19 @@ fn region_command_line_errors() {
         (
             vec!["--region", "1:0,0", "--bounds", "-1,-1,-1,2"],
             "is not K:X,Y,Z",
+        ),
+        // A part is format 1: asking for 2.0 is refused (the default and
+        // `--format-version 1` write the part).
+        (
+            vec![
+                "--region",
+                "1:0,0,0",
+                "--bounds",
+                "-1,-1,-1,2",
+                "--format-version",
+                "2",
+            ],
+            "which is format 1",
         ),
     ] {
         let mut a = vec!["convert", i, "-o", o, "--depth", "6", "-q"];

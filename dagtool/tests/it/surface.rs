@@ -26,7 +26,7 @@ fn check_mesh(name: &str, mesh: &ObjMesh, depths: &[u8]) {
         );
         // The header's root cube is the documented one, exactly.
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
         let (min, size) = reference::root_cube(&refmesh, depth);
         assert_eq!(dag.header().root_min, min, "{name}: root cube corner");
         assert_eq!(dag.header().root_size, size, "{name}: root cube size");
@@ -185,7 +185,7 @@ fn triangles_on_voxel_boundaries() {
         let out = dir.path().join("b.vdag");
         convert(&obj, &out, depth, &[]);
         let bytes = std::fs::read(&out).unwrap();
-        let dag = dagfmt::Dag::open(&bytes).unwrap();
+        let dag = dagfmt::AnyDag::open(&bytes).unwrap();
         assert_eq!(dag.header().root_min, [-0.5; 3]);
         assert_eq!(dag.header().root_size, (1u64 << depth) as f64);
         assert!(

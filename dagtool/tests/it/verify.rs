@@ -78,6 +78,25 @@ fn a_conversion_verifies_against_its_mesh() {
         assert!(doc["depth_error_voxels"]["max"].as_f64().unwrap() <= 3f64.sqrt() + 0.2);
         // The DAG is never behind the mesh (beyond rounding).
         assert!(doc["max_late_voxels"].as_f64().unwrap() < 0.1, "{doc:#}");
+        // The file is 2.0 (the default); its 1.0 form verifies with the same
+        // findings, ray for ray (the tracer's answers are the same).
+        let bytes = std::fs::read(&file).unwrap();
+        assert_eq!(dagfmt::AnyDag::open(&bytes).unwrap().version_major(), 2);
+        let v1 = dir.path().join(format!("m{depth}-v1.vdag"));
+        convert(&obj, &v1, depth, &["--format-version", "1"]);
+        let (code1, doc1) = verify_json(&obj, &v1, 20_000);
+        assert_eq!(code1, Some(0));
+        for key in [
+            "rays",
+            "agreement",
+            "hits",
+            "error_voxels",
+            "depth_error_voxels",
+            "max_late_voxels",
+            "criteria",
+        ] {
+            assert_eq!(doc[key], doc1[key], "depth {depth}: {key}");
+        }
     }
 }
 

@@ -346,8 +346,8 @@ fn pick_gpu(
 }
 
 /// The file's DAG, either format version (spec §4.2): a 1.x file as a
-/// [`Dag`], a 2.0 file's levels (spec §23), for every back end (the GPU's
-/// lit render reads 1.x only).
+/// [`Dag`], a 2.0 file's levels (spec §23), for every back end and
+/// shading.
 enum Opened<'a> {
     V1(Dag<'a>),
     V2(dagfmt::Dag2<'a>),

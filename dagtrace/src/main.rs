@@ -346,8 +346,8 @@ fn pick_gpu(
 }
 
 /// The file's DAG, either format version (spec §4.2): a 1.x file as a
-/// [`Dag`], a 2.0 file's levels (spec §23), for every back end (the GPU's
-/// lit render reads 1.x only).
+/// [`Dag`], a 2.0 file's levels (spec §23), for every back end and
+/// shading.
 enum Opened<'a> {
     V1(Dag<'a>),
     V2(dagfmt::Dag2<'a>),
@@ -385,31 +385,6 @@ impl<'a> Opened<'a> {
         colors: bool,
     ) -> Result<Option<GpuBackend>, Failure> {
         pick_gpu(self, backend, compute_index, colors)
-    }
-
-    /// The GPU tracer for a lit render: as [`Opened::gpu`], but the GPU's lit
-    /// passes read 1.x files only, so a 2.0 file is lit on the CPU (with
-    /// `--backend auto`) or refused (`--backend gpu`).
-    fn gpu_lit(
-        &self,
-        backend: &BackendArgs,
-        compute_index: bool,
-        colors: bool,
-    ) -> Result<Option<GpuBackend>, Failure> {
-        match (self, backend.backend) {
-            (Opened::V1(_), _) | (Opened::V2(_), BackendArg::Cpu) => {
-                pick_gpu(self, backend, compute_index, colors)
-            }
-            (Opened::V2(_), BackendArg::Gpu) => fail(
-                "--backend gpu: the GPU's lit render reads format 1 files only; use --shade normal (traced on the GPU), --backend cpu, or `dagtool upgrade FILE -o OUT --format-version 1`",
-            ),
-            (Opened::V2(_), BackendArg::Auto) => {
-                eprintln!(
-                    "dagtrace: format 2.0 file: lit on the CPU (the GPU's lit render reads format 1)"
-                );
-                Ok(None)
-            }
-        }
     }
 }
 
@@ -487,7 +462,7 @@ fn render_cmd(args: RenderArgs) -> Result<(), Failure> {
             };
             options.check()?;
             let colored = tracer.colors().is_some();
-            match dag.gpu_lit(&args.backend, colored, colored)? {
+            match dag.gpu(&args.backend, colored, colored)? {
                 None => render_lit(
                     &tracer,
                     &frame,

@@ -46,46 +46,32 @@ fn face_normal(face: u32) -> vec3<f32> {
     return n;
 }
 
-// Word address of the leaf (level leaf_level) holding leaf cell `c`, or
-// LIT_NO_LEAF when it is empty.
-fn find_leaf(c: vec3<u32>) -> u32 {
-    var addr = params.levels[0].x;
+// The logical mask (low, high word) of the leaf (level leaf_level) holding
+// leaf cell `c`, zero when it is empty: trace.wgsl's `path_node`, so both
+// format versions, a 2.0 leaf reflected by its accumulated reflection.
+fn leaf_bits(c: vec3<u32>) -> vec2<u32> {
     let leaf_level = params.leaf_level;
-    for (var l = 0u; l < leaf_level; l += 1u) {
-        let mask = node_mask(addr);
-        let ch = path_child(c, leaf_level - 1u - l);
-        if ((mask & (1u << ch)) == 0u) {
-            return LIT_NO_LEAF;
-        }
-        let pointer = child_reference(addr, l, mask, ch);
-        let child = params.levels[l + 1u];
-        if (pointer >= child.z) {
-            lit_fault = INFO_MALFORMED;
-            return LIT_NO_LEAF;
-        }
-        addr = child.x + select(pointer, 2u * pointer, l + 1u == leaf_level);
+    let n = path_node(c, leaf_level, leaf_level);
+    if (n.z == PATH_MALFORMED) {
+        lit_fault = INFO_MALFORMED;
     }
-    return addr;
+    if (n.z != PATH_FOUND) {
+        return vec2<u32>(0u);
+    }
+    let bits = leaf_mask(params.levels[leaf_level].x + 2u * n.x);
+    if (FORMAT_V2) {
+        return reflect_leaf(bits, n.y);
+    }
+    return bits;
 }
 
 // Whether cell `c` of `level` (at most leaf_level) is occupied.
 fn node_occupied(c: vec3<u32>, level: u32) -> bool {
-    var addr = params.levels[0].x;
-    for (var l = 0u; l < level; l += 1u) {
-        let mask = node_mask(addr);
-        let ch = path_child(c, level - 1u - l);
-        if ((mask & (1u << ch)) == 0u) {
-            return false;
-        }
-        let pointer = child_reference(addr, l, mask, ch);
-        let child = params.levels[l + 1u];
-        if (pointer >= child.z) {
-            lit_fault = INFO_MALFORMED;
-            return false;
-        }
-        addr = child.x + pointer;
+    let n = path_node(c, level, level);
+    if (n.z == PATH_MALFORMED) {
+        lit_fault = INFO_MALFORMED;
     }
-    return true;
+    return n.z == PATH_FOUND;
 }
 
 fn kernel_contains(d: vec3<i32>) -> bool {
@@ -113,10 +99,7 @@ fn shading_normal(cell: vec3<u32>, level: u32, face: u32) -> vec3<f32> {
                     let i = u32((x - lo.x) + 3 * (y - lo.y) + 9 * (z - lo.z));
                     leaves[i] = vec2<u32>(0u);
                     if (all(l >= vec3<i32>(0)) && all(l <= vec3<i32>(leaf_last))) {
-                        let a = find_leaf(vec3<u32>(l));
-                        if (a != LIT_NO_LEAF) {
-                            leaves[i] = leaf_mask(a);
-                        }
+                        leaves[i] = leaf_bits(vec3<u32>(l));
                     }
                 }
             }

@@ -8,7 +8,7 @@
 //! [`GpuTracer::render`] makes and traces camera rays on the GPU.
 //! [`GpuTracer::with_context_v2`] uploads a format 2.0 DAG (spec §23) and
 //! traces it with the 2.0 variant of the shader, with the answers of the 1.0
-//! DAG of the same voxels (the lit passes read 1.0 only).
+//! DAG of the same voxels (the lit passes too).
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {

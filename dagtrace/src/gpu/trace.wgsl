@@ -163,14 +163,14 @@ fn leaf_mask(a: u32) -> vec2<u32> {
 const LOW_CODE_BITS: u32 = 0x55555u;
 
 // A 2.0 record's header word and its m 2-bit codes (code i in bits 2i, 2i+1).
+// `w1`, `w2`: the record's second and third aligned words (from the word
+// holding its first byte), where its first references usually are.
 struct Codes2 {
     header: u32,
     codes: u32,
     count: u32,
-    // The traversal's cursor: the last sequential child found (position j,
-    // address), NO_CURSOR when none; see `child2_from`.
-    cursor_j: u32,
-    cursor_at: u32,
+    w1: u32,
+    w2: u32,
 }
 
 // The 32 bits at bit `s` (0..32) of the 64-bit little-endian (w0, w1).
@@ -185,14 +185,14 @@ fn codes2(level: u32, off: u32) -> Codes2 {
     let s = (off & 3u) * 8u;
     let w0 = load_word(a);
     let w1 = load_word(a + 1u);
+    let w2 = load_word(a + 2u);
     var c: Codes2;
     c.header = funnel(w0, w1, s);
+    c.w1 = w1;
+    c.w2 = w2;
     let k = countOneBits(c.header & 0xffu);
     // The k codes and the base code, if any: at most 18 bits from byte off + 4.
-    var raw = w1 >> s;
-    if (s + 2u * k + 2u > 32u) {
-        raw |= load_word(a + 2u) << (32u - s);
-    }
+    let raw = funnel(w1, w2, s);
     let k_codes = raw & ((1u << (2u * k)) - 1u);
     let n_shared = countOneBits((k_codes | (k_codes >> 1u)) & LOW_CODE_BITS);
     let count = k + select(0u, 1u, n_shared < k);
@@ -203,8 +203,6 @@ fn codes2(level: u32, off: u32) -> Codes2 {
     }
     c.codes = codes;
     c.count = count;
-    c.cursor_j = NO_CURSOR;
-    c.cursor_at = 0u;
     return c;
 }
 
@@ -257,55 +255,73 @@ fn value2(level: u32, off: u32, bit: u32, width: u32) -> vec2<u32> {
     return vec2<u32>(lo, hi);
 }
 
-// No sequential child found yet (`Codes2::cursor_j`).
-const NO_CURSOR: u32 = 0xffffffffu;
+// `value2` of the record whose `Codes2` is `c`: from the words `codes2`
+// read (no load) when the value lies in them, else `value2`.
+fn value2_from(level: u32, off: u32, c: Codes2, bit: u32, width: u32) -> vec2<u32> {
+    // Bit position from the start of the record's first word (at least 32).
+    let at = ((off & 3u) << 3u) + bit;
+    if (at + width > 96u) {
+        return value2(level, off, bit, width);
+    }
+    let sh = at - 32u;
+    var lo = select(funnel(c.w1, c.w2, sh), c.w2 >> (sh - 32u), sh >= 32u);
+    var hi = 0u;
+    if (width < 32u) {
+        lo &= (1u << width) - 1u;
+    } else {
+        hi = funnel(c.w2, 0u, sh) & ((1u << (width - 32u)) - 1u);
+    }
+    return vec2<u32>(lo, hi);
+}
 
 // The child at physical slot `slot` (set in the child mask) of the record at
 // byte `off` of 2.0 level `level`, whose header and codes are `c`: (address
 // in level + 1, reflection). A shared child's reference is at bit 2m +
 // n1·w1 + n2·w2 + n3·w3 of the stream; a sequential child is `base + j` in
-// the leaf level, else `base` plus the sizes of the j sequential siblings
-// before it. An address beyond 32 bits reads as 0xffffffff (out of range).
+// the leaf level, else the j-th record after `base` (`next_records`). Both
+// kinds read one reference (the child's, or the base reference after the k
+// children's), by the same arithmetic, so that lanes taking either agree
+// on the load. An address beyond 32 bits reads as 0xffffffff (out of range).
 fn child2(level: u32, off: u32, c: Codes2, slot: u32) -> vec2<u32> {
-    return child2_from(level, off, c, slot).xy;
-}
-
-// `child2`, starting the sum of sequential siblings' sizes from the cursor
-// `c.cursor_j`/`c.cursor_at` (the j-th sequential child's address, found
-// before) where it is at or before the child asked for. `.z`: the child's
-// sequential position j in an interior child level (a new cursor), else
-// NO_CURSOR.
-fn child2_from(level: u32, off: u32, c: Codes2, slot: u32) -> vec3<u32> {
     let widths = params.levels[level].y;
     let mask = c.header & 0xffu;
+    let k = countOneBits(mask);
     let rank = countOneBits(mask & ((1u << slot) - 1u));
     let code = (c.codes >> (2u * rank)) & 3u;
-    let before = c.codes & ((1u << (2u * rank)) - 1u);
-    let stream = 32u + 2u * c.count;
-    if (code != 0u) {
-        let v = value2(level, off, stream + reference_bits2(widths, before), code_width(widths, code));
+    let is_shared = code != 0u;
+    let upto = select(k, rank, is_shared);
+    let reference_code = select((c.codes >> (2u * k)) & 3u, code, is_shared);
+    let before = c.codes & ((1u << (2u * upto)) - 1u);
+    let v = value2_from(level, off, c, 32u + 2u * c.count + reference_bits2(widths, before), code_width(widths, reference_code));
+    if (is_shared) {
         let dest = select(0xffffffffu, (v.x >> 3u) | (v.y << 29u), v.y < 8u);
-        return vec3<u32>(dest, v.x & 7u, NO_CURSOR);
+        return vec2<u32>(dest, v.x & 7u);
     }
-    let j = rank - countOneBits((before | (before >> 1u)) & LOW_CODE_BITS);
+    let base = select(0xffffffffu, v.x, v.y == 0u);
+    let earlier = c.codes & ((1u << (2u * rank)) - 1u);
+    let j = rank - countOneBits((earlier | (earlier >> 1u)) & LOW_CODE_BITS);
     let child_level = level + 1u;
-    var i = 0u;
-    var dest = 0u;
-    let interior = child_level != params.leaf_level;
-    if (interior && c.cursor_j <= j) {
-        i = c.cursor_j;
-        dest = c.cursor_at;
-    } else {
-        let k = countOneBits(mask);
-        let child_codes = c.codes & ((1u << (2u * k)) - 1u);
-        let base_code = (c.codes >> (2u * k)) & 3u;
-        let b = value2(level, off, stream + reference_bits2(widths, child_codes), code_width(widths, base_code));
-        dest = select(0xffffffffu, b.x, b.y == 0u);
+    if (child_level == params.leaf_level) {
+        return vec2<u32>(select(0xffffffffu, base + j, base <= 0xffffffffu - j), 0u);
     }
-    if (!interior) {
-        return vec3<u32>(select(0xffffffffu, dest + j, dest <= 0xffffffffu - j), 0u, NO_CURSOR);
-    }
-    return vec3<u32>(next_records(child_level, dest, j - i), 0u, j);
+    return vec2<u32>(next_records(child_level, base, j), 0u);
+}
+
+// A record's `Codes2` for the traversal's stack: codes and their count in
+// one word (codes: at most 18 bits), and the words `w1`, `w2`.
+fn pack_codes2(c: Codes2) -> vec3<u32> {
+    return vec3<u32>(c.codes | (c.count << 20u), c.w1, c.w2);
+}
+
+// The `Codes2` of a record from its child mask and `pack_codes2`.
+fn unpack_codes2(mask: u32, packed: vec3<u32>) -> Codes2 {
+    var c: Codes2;
+    c.header = mask;
+    c.codes = packed.x & 0xfffffu;
+    c.count = packed.x >> 20u;
+    c.w1 = packed.y;
+    c.w2 = packed.z;
+    return c;
 }
 
 // The byte offset of the record `n` records after the one at byte `at` of
@@ -370,6 +386,49 @@ fn reflect_leaf(bits: vec2<u32>, r: u32) -> vec2<u32> {
         m = m.yx;
     }
     return m;
+}
+
+// What `path_node` found.
+const PATH_FOUND: u32 = 0u;
+const PATH_EMPTY: u32 = 1u;
+const PATH_MALFORMED: u32 = 2u;
+
+// The node (or leaf) of level `to` on the path of cell `cell` (file frame)
+// of level `level`, `to` at most min(level, leaf_level), reached as
+// `traverse` reaches it (the lit passes' neighbourhood lookups): `.x` its
+// reference in level `to` (1.0: word offset of the node, or leaf index;
+// 2.0: byte offset of the record, or leaf index), `.y` its accumulated
+// reflection (0 in 1.0), `.z` PATH_FOUND, PATH_EMPTY when a node on the way
+// lacks the child, PATH_MALFORMED when a reference leaves its level.
+fn path_node(cell: vec3<u32>, level: u32, to: u32) -> vec3<u32> {
+    var pointer = 0u;
+    var r = 0u;
+    for (var l = 0u; l < to; l += 1u) {
+        let c = path_child(cell, level - 1u - l);
+        var next = 0u;
+        if (FORMAT_V2) {
+            let codes = codes2(l, pointer);
+            let slot = c ^ r;
+            if ((codes.header & (1u << slot)) == 0u) {
+                return vec3<u32>(0u, 0u, PATH_EMPTY);
+            }
+            let ch = child2(l, pointer, codes, slot);
+            next = ch.x;
+            r ^= ch.y;
+        } else {
+            let a = params.levels[l].x + pointer;
+            let mask = node_mask(a);
+            if ((mask & (1u << c)) == 0u) {
+                return vec3<u32>(0u, 0u, PATH_EMPTY);
+            }
+            next = child_reference(a, l, mask, c);
+        }
+        if (next >= params.levels[l + 1u].z) {
+            return vec3<u32>(0u, 0u, PATH_MALFORMED);
+        }
+        pointer = next;
+    }
+    return vec3<u32>(pointer, r, PATH_FOUND);
 }
 
 struct BrickHit {
@@ -457,8 +516,9 @@ fn traverse(p: Prepared) -> Found {
         return f;
     }
     var stack: array<vec2<u32>, STACK_SIZE>;
-    // 2.0: the codes of each frame's node (unused, and compiled out, in 1.0).
-    var codes_stack: array<Codes2, STACK_SIZE>;
+    // 2.0: the codes of each frame's node, `pack_codes2` (unused, and
+    // compiled out, in 1.0).
+    var codes_stack: array<vec3<u32>, STACK_SIZE>;
     var level = 0u;
     var idx = vec3<u32>(0u);
     // The node to enter: 1.0 word address, 2.0 byte offset in its level.
@@ -488,7 +548,7 @@ fn traverse(p: Prepared) -> Found {
             node = addr;
             if (FORMAT_V2) {
                 let c = codes2(level, addr);
-                codes_stack[level & STACK_MASK] = c;
+                codes_stack[level & STACK_MASK] = pack_codes2(c);
                 mask = c.header & 0xffu;
             } else {
                 mask = node_mask(addr);
@@ -566,14 +626,10 @@ fn traverse(p: Prepared) -> Found {
         var pointer = 0u;
         var child_refl = 0u;
         if (FORMAT_V2) {
-            let ch = child2_from(level, node, codes_stack[level & STACK_MASK], j ^ p.neg ^ refl);
+            let codes = unpack_codes2(mask, codes_stack[level & STACK_MASK]);
+            let ch = child2(level, node, codes, j ^ p.neg ^ refl);
             pointer = ch.x;
             child_refl = refl ^ ch.y;
-            if (ch.z != NO_CURSOR) {
-                // Later sequential siblings are found from this one.
-                codes_stack[level & STACK_MASK].cursor_j = ch.z;
-                codes_stack[level & STACK_MASK].cursor_at = ch.x;
-            }
         } else {
             pointer = child_reference(node, level, mask, j ^ p.neg);
         }

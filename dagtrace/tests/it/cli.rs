@@ -405,9 +405,8 @@ fn sample_ray(i: u64) -> Ray {
 
 /// A format 2.0 file (spec §23) through the command line: `trace` writes the
 /// hits of its 1.0 file byte for byte on every conformance trace case tried,
-/// `render` the same picture, and the GPU's lit render (the default shading)
-/// refuses it in one line with `--backend gpu` (it reads format 1 only; the
-/// GPU traces 2.0 files, see `gpu::command_line_gpu_backend_gives_the_cpu_answers`).
+/// and `render` the same picture (on the GPU, plain and lit, see
+/// `gpu::command_line_gpu_backend_gives_the_cpu_answers`).
 #[test]
 fn format_2_files_trace_and_render_like_their_1_0_file() {
     let dir = tempfile::tempdir().unwrap();
@@ -458,7 +457,7 @@ fn format_2_files_trace_and_render_like_their_1_0_file() {
         traced += 1;
     }
     assert_eq!(traced, names.len());
-    // A picture, and the GPU lit refusal.
+    // A picture.
     let v1 = cases.join("checker2-d4.vdag");
     let v2 = dir.path().join("checker2-d4-2.vdag");
     let mut pictures = Vec::new();
@@ -484,8 +483,4 @@ fn format_2_files_trace_and_render_like_their_1_0_file() {
         pictures.push(std::fs::read(&png).unwrap());
     }
     assert_eq!(pictures[0], pictures[1], "2.0 render differs from 1.0");
-    let png = dir.path().join("gpu.png");
-    let out = dagtrace(&["render", s(&v2), "-o", s(&png), "--backend", "gpu"]);
-    assert_one_line_error(&out, "lit render reads format 1 files only");
-    assert!(!png.exists());
 }

@@ -1131,29 +1131,38 @@ fn command_line_gpu_backend_gives_the_cpu_answers() {
         }
         by_file.push(gpu);
     }
-    // `render --shade normal` of the 2.0 file on the GPU: the 1.0 file's picture.
-    let mut normal = Vec::new();
-    for file in [&vdag, &vdag2] {
-        let png = dir.path().join("normal.png");
-        let stderr = run(&[
-            "render",
-            &path(file),
-            "-o",
-            &path(&png),
-            "--width",
-            "64",
-            "--height",
-            "48",
-            "--shade",
-            "normal",
-            "--backend",
-            "gpu",
-            "--force",
-        ]);
-        assert!(stderr.contains("tracing on the GPU"), "{stderr}");
-        normal.push(std::fs::read(&png).expect("PNG"));
+    // `render --shade normal` and `--shade lit` of the 2.0 file on the GPU
+    // (`auto` too): the 1.0 file's picture.
+    for (shade, backend) in [("normal", "gpu"), ("lit", "gpu"), ("lit", "auto")] {
+        let mut pictures = Vec::new();
+        for file in [&vdag, &vdag2] {
+            let png = dir.path().join(format!("{shade}.png"));
+            let stderr = run(&[
+                "render",
+                &path(file),
+                "-o",
+                &path(&png),
+                "--width",
+                "64",
+                "--height",
+                "48",
+                "--shade",
+                shade,
+                "--backend",
+                backend,
+                "--force",
+            ]);
+            assert!(
+                stderr.contains("tracing on the GPU"),
+                "{shade} {backend}: {stderr}"
+            );
+            pictures.push(std::fs::read(&png).expect("PNG"));
+        }
+        assert_eq!(
+            pictures[0], pictures[1],
+            "--shade {shade} --backend {backend}: 2.0 picture differs from 1.0"
+        );
     }
-    assert_eq!(normal[0], normal[1], "2.0 picture differs from 1.0");
     // `render` on both back ends: the same camera rays, so nearly the same pixels.
     let mut images = Vec::new();
     for backend in ["cpu", "gpu"] {
@@ -1314,9 +1323,92 @@ fn format_2_random_dags_give_the_1_0_answers() {
     assert!(hits_seen > 1000, "{hits_seen} hits only");
 }
 
-/// A 2.0 DAG on the GPU is the 2.0 shader variant: the lit passes (1.0
-/// only) refuse it in one error, and levels that do not match the depth
-/// are an error, not a panic.
+/// The GPU's lit render of a 2.0 DAG (the lit passes compiled with the 2.0
+/// variant of the traversal, their neighbourhood lookups through
+/// `path_node`, reflected leaves included) gives the 1.0 DAG's surfaces to
+/// the bit (hit, face, attribute index, shading normal, shadow, ambient
+/// occlusion) and so its image: random DAGs and conformance scenes (whose
+/// symmetric shapes make reflected references), full and short stacks, at
+/// full depth, at the cells of the leaf level's 4^3 bricks and above them.
+#[test]
+fn format_2_lit_render_gives_the_1_0_surfaces() {
+    let Some(ctx) = context() else { return };
+    let mut rng = Rng(44);
+    let mut scenes: Vec<(String, Vec<u8>)> = Vec::new();
+    for depth in [4u8, 6, 7] {
+        let voxels = random_voxels(&mut rng, depth, 10);
+        let t = TestDag::new(
+            depth,
+            AttributeKind::VoxelCount,
+            voxels,
+            [1.0, -2.0, 0.5],
+            3.0,
+        );
+        scenes.push((format!("random depth {depth}"), t.bytes.clone()));
+    }
+    let cases = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../conformance/cases/trace");
+    for name in [
+        "mesh-sphere-d6",
+        "mesh-torus-d6",
+        "lod-blobs-d6",
+        "checker2-d4",
+    ] {
+        let bytes = std::fs::read(cases.join(format!("{name}.vdag"))).expect("a case file");
+        scenes.push((name.to_string(), bytes));
+    }
+    let options = dagtrace::lit::LitOptions {
+        samples: 2,
+        ao_rays: 4,
+        ..dagtrace::lit::LitOptions::default()
+    };
+    let mut lit_surfaces = 0;
+    for (name, bytes) in &scenes {
+        let dag = Dag::open(bytes).expect("a scene opens");
+        let depth = dag.header().depth;
+        let v2 = dagfmt::v2file::upgrade(&dag).expect("upgrade");
+        let camera = Camera::automatic(&dag, 4.0 / 3.0);
+        let one = tracer(ctx, &dag, GpuOptions::default());
+        for level in [None, Some(depth - 1), Some(depth - 2), Some(depth - 3)] {
+            let level = level.filter(|&l| l >= 1);
+            let expected = one
+                .lit_surfaces(&camera, 40, 30, level, &options)
+                .expect("1.0 lit surfaces");
+            let image = one
+                .render_lit(&camera, 40, 30, level, &options, |_| None)
+                .expect("1.0 lit image");
+            for stack in STACKS {
+                let two = tracer_v2(
+                    ctx,
+                    &v2,
+                    GpuOptions {
+                        stack,
+                        ..GpuOptions::default()
+                    },
+                );
+                let what = format!("{name}, level {level:?}, {stack:?}");
+                let surfaces = two
+                    .lit_surfaces(&camera, 40, 30, level, &options)
+                    .expect("2.0 lit surfaces");
+                let differ = expected.iter().zip(&surfaces).position(|(a, b)| a != b);
+                assert!(
+                    differ.is_none() && expected.len() == surfaces.len(),
+                    "{what}: surface {differ:?} differs: 1.0 {:?}, 2.0 {:?}",
+                    differ.map(|i| expected[i]),
+                    differ.map(|i| surfaces[i])
+                );
+                let two_image = two
+                    .render_lit(&camera, 40, 30, level, &options, |_| None)
+                    .expect("2.0 lit image");
+                assert!(two_image == image, "{what}: the 2.0 lit image differs");
+            }
+            lit_surfaces += expected.iter().filter(|s| s.hit && s.face != 0).count();
+        }
+    }
+    assert!(lit_surfaces > 2000, "{lit_surfaces} lit surfaces only");
+}
+
+/// A 2.0 DAG's levels that do not match the depth are an error, not a
+/// panic.
 #[test]
 fn format_2_refusals() {
     let Some(ctx) = context() else { return };
@@ -1330,20 +1422,6 @@ fn format_2_refusals() {
     );
     let v2 = dagfmt::v2file::upgrade(&t.dag()).expect("upgrade");
     let dag = dagfmt::Dag2::open(&v2).expect("a 2.0 file");
-    let camera = Camera::looking_at_cube(t.root_min, t.root_size, 1.0);
-    let gpu = tracer_v2(ctx, &v2, GpuOptions::default());
-    let lit = gpu.render_lit(
-        &camera,
-        8,
-        8,
-        None,
-        &dagtrace::lit::LitOptions::default(),
-        |_| None,
-    );
-    assert!(
-        matches!(&lit, Err(GpuError::InvalidOptions(m)) if m.contains("format 1.0")),
-        "{lit:?}"
-    );
     let short = GpuTracer::with_context_v2(
         ctx,
         dag.header(),

@@ -123,16 +123,6 @@ impl PyDag {
     ) -> PyResult<Bound<'py, PyArray3<u8>>> {
         let dag = self.dag(py)?;
         check_level(v.level, dag.header().depth)?;
-        if v.gpu && v.shade.is_none() && matches!(dag, AnyDag::V2(_)) {
-            return Err(errors::plain(
-                py,
-                "GpuError",
-                format!(
-                    "{}: backend=\"gpu\": the GPU's lit render reads format 1 files only; use shade=\"normal\" (traced on the GPU), backend=\"cpu\", or `dagtool upgrade FILE -o OUT --format-version 1`",
-                    self.path
-                ),
-            ));
-        }
         let gpu = if v.gpu {
             Some(self.gpu_tracer(py)?)
         } else {

@@ -300,26 +300,24 @@ impl RecordStarts {
         if bits & 1 == 0 {
             return None;
         }
-        // The bit position of bit 0 of `bits`.
+        // The bit position of bit 0 of `bits`. (Clearing the lowest set bit
+        // `index` times, at most 7, rather than counting bits: a popcount is
+        // a dozen instructions where the code is built for the x86-64
+        // baseline.)
         let mut at = base;
-        let mut left = index;
         let last = base + MAX_RECORD_BYTES * u64::from(index);
-        loop {
-            let n = bits.count_ones();
-            if left < n {
-                for _ in 0..left {
-                    bits &= bits - 1;
+        for _ in 0..index {
+            bits &= bits - 1;
+            while bits == 0 {
+                word += 1;
+                at = word as u64 * 64;
+                if at > last {
+                    return None;
                 }
-                return Some(at + u64::from(bits.trailing_zeros()));
+                bits = *self.words.get(word)?;
             }
-            left -= n;
-            word += 1;
-            at = word as u64 * 64;
-            if at > last {
-                return None;
-            }
-            bits = *self.words.get(word)?;
         }
+        Some(at + u64::from(bits.trailing_zeros()))
     }
 }
 
@@ -585,6 +583,37 @@ impl<'a> Level<'a> {
     /// [`RecordStarts`], else added up from their headers and codes.
     #[inline(never)]
     fn child_v2(&self, level: u8, address: u32, slot: u32) -> Result<ChildRef, Fault> {
+        #[cfg(target_arch = "x86_64")]
+        if crate::cpu::available() {
+            // SAFETY: `available()` found POPCNT, BMI1/2 and LZCNT.
+            return unsafe { self.child_v2_popcnt(level, address, slot) };
+        }
+        self.child_v2_body(level, address, slot)
+    }
+
+    /// [`Level::child_v2`] compiled with the processor's bit-counting
+    /// instructions: `Coding`'s popcounts (five to eight a reference) are
+    /// one instruction each instead of a dozen (the code is built for the
+    /// x86-64 baseline). 2.0 camera rays at depth 12 spent 15 % of their
+    /// time in `child_v2` (perf).
+    ///
+    /// # Safety
+    ///
+    /// The processor must have POPCNT, BMI1, BMI2 and LZCNT.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "popcnt,bmi1,bmi2,lzcnt")]
+    unsafe fn child_v2_popcnt(
+        &self,
+        level: u8,
+        address: u32,
+        slot: u32,
+    ) -> Result<ChildRef, Fault> {
+        self.child_v2_body(level, address, slot)
+    }
+
+    /// The body of [`Level::child_v2`], inlined into its two copies.
+    #[inline(always)]
+    fn child_v2_body(&self, level: u8, address: u32, slot: u32) -> Result<ChildRef, Fault> {
         let Some(coded) = &self.v2 else {
             return Ok(ChildRef::default());
         };

@@ -407,8 +407,8 @@ pub struct Tracer<'a> {
     /// Edge length in grid units of a cell of each level: 2^(D - level).
     pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
     /// Whether the levels are format 2.0 (spec §23): the walks carry the
-    /// accumulated reflection, the vector lanes run `simd::step`'s 2.0 copy
-    /// (eight lanes only).
+    /// accumulated reflection, the vector lanes run the 2.0 copies of
+    /// `simd::step` and `simd::step_wide`.
     pub(crate) v2: bool,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,

@@ -74,17 +74,20 @@
 //! `CHAIN` and `FIRST` keys, the child's corner), R goes into the frame's
 //! last byte (`Frame::reflection`), node addresses are byte offsets, and
 //! [`v2_reference`] decodes the chosen child's reference with
-//! `node::lanes::Avx2`'s 2.0 forms (three to four gathers, plus two per
-//! sequential sibling before the child); references near their section's
-//! end, or wider than 32 bits, go to `node::Level::child_or_fault` in the
-//! scalar tail. The sixteen lanes decode 1.0 only; a 2.0 tracer takes
-//! eight whatever `Lanes` says.
+//! `node::lanes::Avx2`'s 2.0 forms (three to four gathers; a sequential
+//! child of a node level from the child level's record starts,
+//! `node::RecordStarts`, lane by lane, else two gathers per sequential
+//! sibling before it); references near their section's end, or wider than
+//! 32 bits, go to `node::Level::child_or_fault` in the scalar tail. The
+//! sixteen lanes ([`step_wide`] with `V2`) trace 2.0 likewise, decoding a
+//! reference with [`v2_reference`] on each half of their lanes.
 //!
 //! Left to do: `step` and `step_wide` still repeat each other's ~250 lines
-//! in 256- and 512-bit intrinsics. Writing them once (a lane-width trait
-//! whose two forms wrap the intrinsics, inlined into `run` and `run_wide`)
-//! was not done because the sixteen-lane path can only be tested and timed
-//! on a processor with AVX-512, which the machine of this change lacked.
+//! in 256- and 512-bit intrinsics (their 2.0 reference decoding is shared:
+//! `v2_reference`). Writing them once (a lane-width trait whose two forms
+//! wrap the intrinsics, inlined into `run` and `run_wide`) was not done
+//! when the sixteen-lane path was written, on a machine without AVX-512;
+//! its 2.0 copy was written and tested on one with it (an Intel Xeon).
 
 use std::arch::x86_64::*;
 
@@ -407,8 +410,17 @@ fn try_trace_lanes_with(
 ) -> Result<(), Abandon> {
     let sections = Sections::new(tracer).ok_or(Abandon)?;
     if tracer.v2 {
-        // A 2.0 DAG (spec §23): eight lanes, which decode its records
-        // (`step`'s `V2`); the sixteen lanes decode 1.0 records only.
+        // A 2.0 DAG (spec §23): the steps' `V2` copies decode its records.
+        if how.wide && wide_available() {
+            // SAFETY: `wide_available()` found the features.
+            return unsafe {
+                if how.loads {
+                    run_wide::<WIDE_GROUPS, true, true>(tracer, &sections, rays, hits)
+                } else {
+                    run_wide::<WIDE_GROUPS, false, true>(tracer, &sections, rays, hits)
+                }
+            };
+        }
         // SAFETY: only called where `available()` found the features.
         return unsafe {
             match (how.small, how.loads) {
@@ -425,9 +437,9 @@ fn try_trace_lanes_with(
         // SAFETY: `wide_available()` found the features.
         return unsafe {
             if how.loads {
-                run_wide::<WIDE_GROUPS, true>(tracer, &sections, rays, hits)
+                run_wide::<WIDE_GROUPS, true, false>(tracer, &sections, rays, hits)
             } else {
-                run_wide::<WIDE_GROUPS, false>(tracer, &sections, rays, hits)
+                run_wide::<WIDE_GROUPS, false, false>(tracer, &sections, rays, hits)
             }
         };
     }
@@ -464,7 +476,7 @@ trait StepLanes {
     /// # Safety
     ///
     /// The processor must have the features of the step function (AVX2,
-    /// and AVX-512 for sixteen lanes). `V2` (a 2.0 DAG) only for eight lanes.
+    /// and AVX-512 for sixteen lanes).
     unsafe fn step<const LOADS: bool, const V2: bool>(
         &mut self,
         tracer: &Tracer<'_>,
@@ -491,12 +503,8 @@ impl StepLanes for Group<WIDE> {
         tracer: &Tracer<'_>,
         sections: &Sections,
     ) -> Result<u32, Abandon> {
-        if V2 {
-            // Never run: 2.0 DAGs take eight lanes (`try_trace_lanes_with`).
-            return Err(Abandon);
-        }
         // SAFETY: the caller's.
-        unsafe { step_wide::<LOADS>(tracer, sections, self) }
+        unsafe { step_wide::<LOADS, V2>(tracer, sections, self) }
     }
 }
 
@@ -517,14 +525,14 @@ unsafe fn run<const G: usize, const LOADS: bool, const V2: bool>(
 #[target_feature(
     enable = "avx512f,avx512bw,avx512vl,avx512dq,avx512cd,avx2,bmi1,bmi2,popcnt,lzcnt,fma"
 )]
-unsafe fn run_wide<const G: usize, const LOADS: bool>(
+unsafe fn run_wide<const G: usize, const LOADS: bool, const V2: bool>(
     tracer: &Tracer<'_>,
     sections: &Sections,
     rays: &[Ray],
     hits: &mut [Hit],
 ) -> Result<(), Abandon> {
     // SAFETY: compiled with the features `step_wide` needs.
-    unsafe { run_groups::<WIDE, G, LOADS, false>(tracer, sections, rays, hits) }
+    unsafe { run_groups::<WIDE, G, LOADS, V2>(tracer, sections, rays, hits) }
 }
 
 /// The vector traversal of `rays` into `hits`: `G` groups of `N` lanes step
@@ -1163,7 +1171,7 @@ unsafe fn step<const LOADS: bool, const V2: bool>(
         // carries; `cut`: the lanes whose reference is read by the scalar
         // tail.
         let (pointer, child_reflection, cut) = if V2 {
-            v2_reference::<LOADS>(s, base, level, word, mask, rank, choose)
+            v2_reference::<LOADS>(tracer, s, base, level, word, mask, rank, choose)
         } else {
             let fast_limit = by_level(&fast_limits, level);
             let width = by_level(&widths, level);
@@ -1308,9 +1316,11 @@ fn level_table(t: &[i32; LEVEL_TABLE]) -> [__m256i; 3] {
 /// decoding: words near the end of their section (the gathers read eight
 /// bytes), and values that do not fit in 32 bits.
 ///
-/// A sequential child of a node level is found by adding the sizes of its
-/// sequential siblings before it, read from their headers and codes, all
-/// lanes at once, one sibling a round.
+/// A sequential child of a node level is found in the child level's record
+/// starts (`node::Level::sequential_in_index`, spec §23.8), lane by lane;
+/// where that does not answer, by adding the sizes of its sequential
+/// siblings before it, read from their headers and codes, all lanes at
+/// once, one sibling a round.
 ///
 /// # Safety
 ///
@@ -1318,7 +1328,9 @@ fn level_table(t: &[i32; LEVEL_TABLE]) -> [__m256i; 3] {
 /// (`Sections` addressing every level from `base`).
 #[inline]
 #[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
 unsafe fn v2_reference<const LOADS: bool>(
+    tracer: &Tracer<'_>,
     s: &Sections,
     base: *const i32,
     level: __m256i,
@@ -1421,11 +1433,42 @@ unsafe fn v2_reference<const LOADS: bool>(
     let wraps = _mm256_and_si256(leaf, lt_u32(sum, target));
     slow = _mm256_or_si256(slow, wraps);
     target = blend(target, sum, _mm256_andnot_si256(wraps, leaf));
-    // Sequential children of a node level: the sizes of the siblings before.
+    // Sequential children of a node level: the record starts of the child
+    // level, else the sizes of the siblings before.
     let mut todo = _mm256_andnot_si256(
         to_leaf,
         _mm256_and_si256(sequential, _mm256_cmpgt_epi32(c.index, zero)),
     );
+    let mut indexed = _mm256_movemask_ps(_mm256_castsi256_ps(todo)) as u32;
+    if indexed != 0 {
+        let (mut targets, mut indices, mut levels) = ([0i32; W], [0i32; W], [0i32; W]);
+        // SAFETY: stores of eight lanes into eight-value arrays.
+        unsafe {
+            _mm256_storeu_si256(targets.as_mut_ptr().cast(), target);
+            _mm256_storeu_si256(indices.as_mut_ptr().cast(), c.index);
+            _mm256_storeu_si256(levels.as_mut_ptr().cast(), level);
+        }
+        let mut lanes = indexed;
+        while lanes != 0 {
+            let lane = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            let node = &tracer.levels[levels[lane] as usize & (LEVEL_SLOTS - 1)];
+            match node.sequential_in_index(u64::from(targets[lane] as u32), indices[lane] as u32) {
+                // (A record start is inside its level, which `Sections`
+                // addresses with 32-bit offsets.)
+                Some(at) => targets[lane] = at as i32,
+                None => indexed &= !(1 << lane),
+            }
+        }
+        // SAFETY: a load of eight lanes from an eight-value array.
+        target = unsafe { _mm256_loadu_si256(targets.as_ptr().cast()) };
+        let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+        let found = _mm256_cmpeq_epi32(
+            _mm256_and_si256(_mm256_set1_epi32(indexed as i32), lane_bits),
+            lane_bits,
+        );
+        todo = _mm256_andnot_si256(found, todo);
+    }
     if _mm256_movemask_ps(_mm256_castsi256_ps(todo)) != 0 {
         let next_offset = by_level(&offsets, child_level);
         let next_end = by_level(&ends, child_level);
@@ -1727,7 +1770,7 @@ macro_rules! sti_wide {
 /// The processor must have the features of [`wide_available`].
 #[inline]
 #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512dq,avx512cd")]
-unsafe fn step_wide<const LOADS: bool>(
+unsafe fn step_wide<const LOADS: bool, const V2: bool>(
     tracer: &Tracer<'_>,
     s: &Sections,
     g: &mut Group<WIDE>,
@@ -1751,7 +1794,7 @@ unsafe fn step_wide<const LOADS: bool>(
         let tables = |t: &[i32; LEVEL_TABLE]| {
             [0, 16].map(|i| _mm512_loadu_si512(t[i..i + 16].as_ptr().cast()))
         };
-        let (offsets, lens, widths) = (tables(&s.offset), tables(&s.len), tables(&s.width));
+        let (offsets, nodes, widths) = (tables(&s.offset), tables(&s.nodes), tables(&s.width));
         let fast_limits = tables(&s.fast_limit);
 
         let state = ldi_wide!(g.state);
@@ -1760,17 +1803,33 @@ unsafe fn step_wide<const LOADS: bool>(
         let mut level = ldi_wide!(g.level);
         let target = ldi_wide!(g.target);
         let neg = ldi_wide!(g.neg);
+        // 2.0: the accumulated reflection R of the node each lane visits or
+        // stands on (as in `step`); 0 in 1.0.
+        let mut reflection = if V2 {
+            _mm512_mask_blend_epi32(
+                visit,
+                ldi_wide!(g.reflection),
+                ldi_wide!(g.target_reflection),
+            )
+        } else {
+            zero
+        };
 
         // Visit: the header, bounds-checked like `Level::header_or_fault`.
-        let len = by_level_wide(&lens, level);
-        let inside = _mm512_cmplt_epu32_mask(target, _mm512_srli_epi32::<2>(len));
+        let inside = _mm512_cmplt_epu32_mask(target, by_level_wide(&nodes, level));
         if visit & !inside != 0 {
             return Err(Abandon);
         }
+        // (A 2.0 node's address is its header's byte offset.)
+        let header_at = if V2 {
+            target
+        } else {
+            Avx512::header_at(target)
+        };
         let header = gather_wide::<LOADS>(
             zero,
             base,
-            _mm512_add_epi32(by_level_wide(&offsets, level), Avx512::header_at(target)),
+            _mm512_add_epi32(by_level_wide(&offsets, level), header_at),
             visit,
         );
         let (ox, oy, oz) = (ldf_wide!(g.ox), ldf_wide!(g.oy), ldf_wide!(g.oz));
@@ -1818,7 +1877,10 @@ unsafe fn step_wide<const LOADS: bool>(
         );
         let chain = table_bytes_wide::<LOADS>(
             &CHAIN_PADDED,
-            _mm512_or_si512(_mm512_slli_epi32::<9>(neg), key),
+            _mm512_or_si512(
+                _mm512_slli_epi32::<9>(_mm512_xor_si512(neg, reflection)),
+                key,
+            ),
             visit,
         );
         let node_mask = Avx512::child_mask(header);
@@ -1855,6 +1917,11 @@ unsafe fn step_wide<const LOADS: bool>(
             remaining,
             _mm512_and_si512(_mm512_srli_epi32::<8>(f_bits), byte),
         );
+        if V2 {
+            // `Frame::reflection`, the frame's last byte.
+            reflection = _mm512_mask_blend_epi32(pop, reflection, _mm512_srli_epi32::<24>(f_bits));
+        }
+        let node_neg = _mm512_xor_si512(neg, reflection);
         // That node's corner and edge (exact integers).
         let edge = _mm512_sllv_epi32(one, _mm512_sub_epi32(_mm512_set1_epi32(s.depth), level));
         let corner = |p: __m512| {
@@ -1871,7 +1938,7 @@ unsafe fn step_wide<const LOADS: bool>(
         let choose = active & !at_top;
         let child = table_bytes_wide::<LOADS>(
             &FIRST_PADDED,
-            _mm512_or_si512(_mm512_slli_epi32::<8>(neg), remaining),
+            _mm512_or_si512(_mm512_slli_epi32::<8>(node_neg), remaining),
             choose,
         );
         let bit = _mm512_maskz_sllv_epi32(choose, one, child);
@@ -1882,22 +1949,51 @@ unsafe fn step_wide<const LOADS: bool>(
             _mm512_maskz_mov_epi32(_mm512_cmpneq_epi32_mask(remaining, zero), level_bit),
         );
         let rank = popcount8_wide(_mm512_and_si512(mask, _mm512_sub_epi32(bit, one)));
-        let fast_limit = by_level_wide(&fast_limits, level);
-        let width = by_level_wide(&widths, level);
-        let pointer_mask = Avx512::reference_mask(width);
-        let at = Avx512::reference_at(word, rank, width);
-        let cut = _mm512_cmpgt_epi32_mask(at, fast_limit);
-        let fast = choose & !cut;
-        let pointer = _mm512_and_si512(
-            gather_wide::<LOADS>(
-                zero,
-                base,
-                _mm512_add_epi32(by_level_wide(&offsets, level), at),
-                fast,
-            ),
-            pointer_mask,
-        );
-        let mirrored = _mm512_xor_si512(child, neg);
+        // The child's reference: its target and (2.0) the reflection it
+        // carries; `cut`: the lanes whose reference is read by the scalar
+        // tail.
+        let (pointer, child_reflection, cut) = if V2 {
+            // The 2.0 decoding of `step`, `v2_reference`, on each half of
+            // the lanes: the very same operations per lane.
+            let halves =
+                |v: __m512i| (_mm512_castsi512_si256(v), _mm512_extracti64x4_epi64::<1>(v));
+            let join =
+                |lo: __m256i, hi: __m256i| _mm512_inserti64x4::<1>(_mm512_castsi256_si512(lo), hi);
+            let (level_lo, level_hi) = halves(level);
+            let (word_lo, word_hi) = halves(word);
+            let (mask_lo, mask_hi) = halves(mask);
+            let (rank_lo, rank_hi) = halves(rank);
+            let (choose_lo, choose_hi) = halves(_mm512_movm_epi32(choose));
+            let (p_lo, r_lo, cut_lo) = v2_reference::<LOADS>(
+                tracer, s, base, level_lo, word_lo, mask_lo, rank_lo, choose_lo,
+            );
+            let (p_hi, r_hi, cut_hi) = v2_reference::<LOADS>(
+                tracer, s, base, level_hi, word_hi, mask_hi, rank_hi, choose_hi,
+            );
+            (
+                join(p_lo, p_hi),
+                join(r_lo, r_hi),
+                _mm512_movepi32_mask(join(cut_lo, cut_hi)),
+            )
+        } else {
+            let fast_limit = by_level_wide(&fast_limits, level);
+            let width = by_level_wide(&widths, level);
+            let pointer_mask = Avx512::reference_mask(width);
+            let at = Avx512::reference_at(word, rank, width);
+            let cut = _mm512_cmpgt_epi32_mask(at, fast_limit);
+            let fast = choose & !cut;
+            let pointer = _mm512_and_si512(
+                gather_wide::<LOADS>(
+                    zero,
+                    base,
+                    _mm512_add_epi32(by_level_wide(&offsets, level), at),
+                    fast,
+                ),
+                pointer_mask,
+            );
+            (pointer, zero, cut)
+        };
+        let mirrored = _mm512_xor_si512(child, node_neg);
         let m = [1, 2, 4].map(|b| _mm512_test_epi32_mask(mirrored, _mm512_set1_epi32(b)));
         // `p + (half & mask)` as in `step`: +0.0 in the other lanes.
         let cx = _mm512_add_ps(px, _mm512_maskz_mov_ps(m[0], half));
@@ -1907,7 +2003,10 @@ unsafe fn step_wide<const LOADS: bool>(
         // then the bits), interleaved into eight 64-bit words a vector.
         let frame_bits = _mm512_or_si512(
             _mm512_or_si512(mask, _mm512_slli_epi32::<8>(remaining)),
-            _mm512_slli_epi32::<16>(child),
+            _mm512_or_si512(
+                _mm512_slli_epi32::<16>(child),
+                _mm512_slli_epi32::<24>(reflection),
+            ),
         );
         let low_lanes = _mm512_setr_epi32(0, 16, 1, 17, 2, 18, 3, 19, 4, 20, 5, 21, 6, 22, 7, 23);
         let high_lanes =
@@ -1931,7 +2030,7 @@ unsafe fn step_wide<const LOADS: bool>(
         // What to prefetch: the child's header, or the brick's leaf mask.
         let scale = _mm512_mask_blend_epi32(
             at_stop,
-            _mm512_set1_epi32(HEADER_SHIFT),
+            _mm512_set1_epi32(if V2 { 0 } else { HEADER_SHIFT }),
             _mm512_set1_epi32(LEAF_SHIFT),
         );
         sti_wide!(
@@ -1965,6 +2064,17 @@ unsafe fn step_wide<const LOADS: bool>(
         stf_wide!(g.by, cy);
         stf_wide!(g.bz, cz);
         sti_wide!(g.target, _mm512_mask_blend_epi32(choose, target, pointer));
+        if V2 {
+            sti_wide!(g.reflection, reflection);
+            sti_wide!(
+                g.target_reflection,
+                _mm512_mask_blend_epi32(
+                    choose,
+                    ldi_wide!(g.target_reflection),
+                    _mm512_xor_si512(reflection, child_reflection)
+                )
+            );
+        }
         sti_wide!(g.word, word);
         sti_wide!(g.mask, mask);
         sti_wide!(g.remaining, remaining);
@@ -1975,13 +2085,20 @@ unsafe fn step_wide<const LOADS: bool>(
         if slow_bits != 0 {
             sti_wide!(out.word, word);
             sti_wide!(out.level, frame_level);
-            sti_wide!(out.rank, rank);
+            if V2 {
+                // The child's physical slot, its node's mask and R.
+                sti_wide!(out.rank, child);
+                sti_wide!(out.mask, mask);
+                sti_wide!(out.reflection, reflection);
+            } else {
+                sti_wide!(out.rank, rank);
+            }
         }
         done_bits = u32::from(at_stop | at_top);
     }
     // SAFETY: as in `step`: `out.frame_at` holds `256 * lane + 8 * level`
     // with `level < LEVEL_SLOTS` in every lane.
-    unsafe { out.write_back::<false>(tracer, s, g, slow_bits & choose_bits) }?;
+    unsafe { out.write_back::<V2>(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
 }
 

@@ -643,6 +643,72 @@ mod tests {
         }
     }
 
+    /// Format 2.0 files with random bytes of their level sections changed
+    /// (references, codes and headers that name records elsewhere, cut the
+    /// chain of record starts or run past a section): the batch API in
+    /// eight and (where the processor has AVX-512) sixteen lanes gives each
+    /// ray the answer or the error of a single ray, and a batch fails
+    /// exactly when one of its rays does.
+    #[test]
+    fn lanes_report_malformed_2_0_dags_like_single_rays() {
+        let mut rng = Rng(0x2ba);
+        let bytes = scene(&mut rng);
+        let file = dagfmt::v2file::upgrade(&Dag::open(&bytes).unwrap()).expect("upgrades");
+        let dag2 = dagfmt::Dag2::open(&file).expect("2.0 file opens");
+        let levels: Vec<(usize, usize)> = dag2
+            .levels()
+            .iter()
+            .map(|l| {
+                (
+                    l.bytes.as_ptr() as usize - file.as_ptr() as usize,
+                    l.bytes.len(),
+                )
+            })
+            .collect();
+        let (first, end) = (levels[0].0, levels.last().map(|&(o, n)| o + n).unwrap());
+        let (mut errors, mut traced) = (0, 0);
+        for case in 0..200 {
+            let mut corrupt = file.clone();
+            for _ in 0..1 + case % 3 {
+                let at = first + (rng.next() % (end - first) as u64) as usize;
+                corrupt[at] = rng.next() as u8;
+            }
+            let Ok(dag) = dagfmt::Dag2::open(&corrupt) else {
+                continue;
+            };
+            let Ok(tracer) = Tracer::from_v2(&dag) else {
+                continue;
+            };
+            let rays = rays(&mut rng, 40);
+            for lanes in [Lanes::Eight, Lanes::Sixteen] {
+                let tracer = tracer.clone().with_lanes(lanes);
+                for ray in &rays {
+                    let mut hit = [Hit::MISS];
+                    let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
+                    match (tracer.trace(ray), batch) {
+                        (Ok(single), Ok(())) => assert_eq!(single, hit[0], "{lanes:?}: {ray:?}"),
+                        (Err(a), Err(b)) => {
+                            assert_eq!(a, b);
+                            errors += 1;
+                        }
+                        (a, b) => panic!("{lanes:?}: single {a:?}, batch {b:?}"),
+                    }
+                }
+                let mut hits = vec![Hit::MISS; rays.len()];
+                let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
+                assert_eq!(
+                    tracer.trace_sequential_into(&rays, &mut hits).is_err(),
+                    any_error
+                );
+                traced += 1;
+            }
+        }
+        assert!(
+            traced > 100 && errors > 0,
+            "{traced} traced, {errors} errors"
+        );
+    }
+
     #[test]
     fn interleaved_batches_report_malformed_dags_like_single_rays() {
         let mut rng = Rng(11);

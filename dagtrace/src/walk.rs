@@ -407,8 +407,8 @@ pub struct Tracer<'a> {
     /// Edge length in grid units of a cell of each level: 2^(D - level).
     pub(crate) cell_size: [f32; MAX_STORED_LEVELS + 2],
     /// Whether the levels are format 2.0 (spec §23): the walks carry the
-    /// accumulated reflection, the vector lanes run `simd::step`'s 2.0 copy
-    /// (eight lanes only).
+    /// accumulated reflection, the vector lanes run the 2.0 copies of
+    /// `simd::step` and `simd::step_wide`.
     pub(crate) v2: bool,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
@@ -441,7 +441,7 @@ impl<'a> Tracer<'a> {
     /// nodes with saturated counts lead to a pointer outside their level.
     pub fn new(dag: &Dag<'a>) -> Result<Self, TraceError> {
         let file = dag.bytes();
-        let mut levels = [Level::default(); LEVEL_SLOTS];
+        let mut levels: [Level<'a>; LEVEL_SLOTS] = std::array::from_fn(|_| Level::default());
         for (slot, section) in levels.iter_mut().zip(dag.levels()) {
             *slot = Level::new(file, section);
         }
@@ -515,7 +515,7 @@ impl<'a> Tracer<'a> {
                 levels.len()
             )));
         }
-        let mut slots = [Level::default(); LEVEL_SLOTS];
+        let mut slots: [Level<'a>; LEVEL_SLOTS] = std::array::from_fn(|_| Level::default());
         for (i, (slot, view)) in slots.iter_mut().zip(levels).enumerate() {
             *slot = Level::new_v2(view, levels.get(i + 1), file)
                 .map_err(|e| TraceError::Malformed(e.at_level(i as u8)))?;
@@ -1006,7 +1006,7 @@ impl<'a> Tracer<'a> {
     }
 
     fn fault_error(&self, fault: Fault) -> TraceError {
-        let level = self.levels[usize::from(fault.level).min(MAX_STORED_LEVELS - 1)];
+        let level = &self.levels[usize::from(fault.level).min(MAX_STORED_LEVELS - 1)];
         let offset = level.file_offset + fault.at;
         let error = if fault.truncated {
             FormatError::new(

@@ -207,11 +207,8 @@ pub struct CpuTracer;
 impl TraceBackend for CpuTracer {
     fn trace(&self, _case: &TraceCaseFiles, file: &[u8], rays: &[Ray]) -> Result<Vec<Hit>, String> {
         let dag = dagfmt::AnyDag::open(file).map_err(|e| format!("the file does not open: {e}"))?;
-        let tracer = match &dag {
-            dagfmt::AnyDag::V1(d) => dagtrace::Tracer::new(d),
-            dagfmt::AnyDag::V2(d) => dagtrace::Tracer::from_v2(d),
-        }
-        .map_err(|e| format!("the tracer refuses the file: {e}"))?;
+        let tracer = dagtrace::Tracer::from_any(&dag)
+            .map_err(|e| format!("the tracer refuses the file: {e}"))?;
         tracer
             .trace_batch(rays)
             .map_err(|e| format!("tracing failed: {e}"))

@@ -828,11 +828,8 @@ fn verify_mesh(opts: &VerifyOptions, mesh: Mesh) -> Result<VerifyReport, Convert
     // Either format version: a 2.0 file is traced as it is (spec §23.4).
     let dag = AnyDag::open(bytes.bytes())
         .map_err(|e| ConvertError::Input(format!("{}: {e}", opts.dag.display())))?;
-    let tracer = match &dag {
-        AnyDag::V1(d) => Tracer::new(d),
-        AnyDag::V2(d) => Tracer::from_v2(d),
-    }
-    .map_err(|e| ConvertError::Input(format!("{}: {e}", opts.dag.display())))?;
+    let tracer = Tracer::from_any(&dag)
+        .map_err(|e| ConvertError::Input(format!("{}: {e}", opts.dag.display())))?;
     let header = dag.header();
     let depth = header.depth;
     let voxel = header.root_size / (1u64 << depth) as f64;

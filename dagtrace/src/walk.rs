@@ -478,6 +478,15 @@ impl<'a> Tracer<'a> {
         Self::from_v2_parts(header, levels, colors, None)
     }
 
+    /// The tracer of a file of either version: [`Tracer::new`] for 1.x,
+    /// [`Tracer::from_v2`] for 2.0.
+    pub fn from_any(dag: &dagfmt::AnyDag<'a>) -> Result<Self, TraceError> {
+        match dag {
+            dagfmt::AnyDag::V1(d) => Self::new(d),
+            dagfmt::AnyDag::V2(d) => Self::from_v2(d),
+        }
+    }
+
     /// The tracer of the 2.0 file `dag` ([`Tracer::from_v2_levels`] of its
     /// levels, header and colours; knowing the whole file, the vector lanes
     /// gather the records at the end of a level section with the bytes that

@@ -245,10 +245,7 @@ impl PyDag {
 /// traced as they are (`Tracer::from_v2`), with the answers of the 1.0 file
 /// of the same voxels.
 pub(crate) fn cpu_tracer<'a>(dag: &AnyDag<'a>) -> Result<Tracer<'a>, TraceError> {
-    match dag {
-        AnyDag::V1(d) => Tracer::new(d),
-        AnyDag::V2(d) => Tracer::from_v2(d),
-    }
+    Tracer::from_any(dag)
 }
 
 pub(crate) fn check_level(level: Option<u8>, depth: u8) -> PyResult<()> {

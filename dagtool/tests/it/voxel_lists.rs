@@ -265,7 +265,7 @@ fn empty_inputs_make_the_empty_volume() {
         assert_eq!(dag.header().depth, depth, "{name}");
         assert_eq!(dag.header().voxel_count, 0, "{name}");
         let ray = dagfmt::batch::Ray::new([-1.0, 0.5, 0.5], [1.0, 0.0, 0.0]);
-        let hits = dagtrace::Tracer::new(&dag)
+        let hits = dagtrace::Tracer::from_any(&dag)
             .unwrap()
             .trace_batch(&[ray])
             .unwrap();

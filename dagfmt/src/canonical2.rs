@@ -40,6 +40,7 @@ use rayon::prelude::*;
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::SectionEntry;
 use crate::validate::{Findings, Stop};
+use crate::validate2::StartIndex;
 
 /// A child of a record as an item of the level below.
 #[derive(Clone, Copy)]
@@ -59,6 +60,8 @@ struct FileLevel<'a> {
     view: &'a LevelView<'a>,
     /// Record offsets in the level (interior); empty for the leaf level.
     starts: &'a [u64],
+    /// `starts` indexed by offset.
+    index: StartIndex,
     /// Items in the level.
     len: usize,
 }
@@ -84,7 +87,7 @@ impl FileLevel<'_> {
         let i = if self.view.is_leaf {
             usize::try_from(target).ok().filter(|&i| i < self.len)?
         } else {
-            self.starts.binary_search(&target).ok()?
+            self.index.item(target)?
         };
         u32::try_from(i).ok()
     }
@@ -123,15 +126,25 @@ impl FileLevel<'_> {
     }
 }
 
+/// What the bottom-up pass knows of one item, together so that following a
+/// reference to it costs one cache miss.
+#[derive(Clone, Copy, Default)]
+struct ItemInfo {
+    /// The intrinsic rank of its class.
+    rank: u32,
+    /// The least reflection turning it into its class's canonical member
+    /// (the member attains the key).
+    to_canonical: u8,
+    /// Its class's symmetry group, bit s set when reflection s maps the
+    /// class onto itself.
+    group: u8,
+}
+
 /// What the bottom-up pass knows of a level's items and classes.
 struct Ranked {
-    /// Per item: the intrinsic rank of its class.
-    rank: Vec<u32>,
-    /// Per item: the least reflection turning it into its class's
-    /// canonical member (the member attains the key).
-    to_canonical: Vec<u8>,
-    /// Per class (by rank): its symmetry group, bit s set when reflection
-    /// s maps the class onto itself.
+    /// Per item.
+    items: Vec<ItemInfo>,
+    /// Per class (by rank): its symmetry group.
     group: Vec<u8>,
     /// Per class (by rank): its first item.
     first: Vec<u32>,
@@ -139,44 +152,32 @@ struct Ranked {
 
 impl Ranked {
     /// Ranks sorted `(key, item)` pairs: equal keys are one class.
-    fn from_sorted<K: PartialEq>(
-        sorted: &[(K, u32)],
-        to_canonical: Vec<u8>,
-        item_group: &[u8],
-    ) -> Ranked {
-        let mut rank = vec![0u32; sorted.len()];
+    /// `items` holds each item's reflection and group; its ranks are set here.
+    fn from_sorted<K: PartialEq>(sorted: &[(K, u32)], mut items: Vec<ItemInfo>) -> Ranked {
         let mut group = Vec::new();
         let mut first = Vec::new();
         for (i, (key, item)) in sorted.iter().enumerate() {
             if i == 0 || sorted[i - 1].0 != *key {
-                group.push(item_group[*item as usize]);
+                group.push(items[*item as usize].group);
                 first.push(*item);
             }
-            rank[*item as usize] = (first.len() - 1) as u32;
+            items[*item as usize].rank = (first.len() - 1) as u32;
         }
         Ranked {
-            rank,
-            to_canonical,
+            items,
             group,
             first,
         }
     }
 
-    /// The symmetry group of item `i`'s class.
-    fn group_of_item(&self, i: u32) -> u8 {
-        self.group[self.rank[i as usize] as usize]
-    }
-
     /// The slot value of §23.6 for a child stored as item `c` and named
     /// with reflection `r`: `1 + 8·rank + t`, t the least reflection turning
     /// the class's canonical member into the child.
+    #[inline]
     fn slot(&self, c: ChildItem) -> u64 {
-        let i = c.item as usize;
-        let t = norm(
-            self.to_canonical[i] ^ c.reflection,
-            self.group[self.rank[i] as usize],
-        );
-        1 + (u64::from(self.rank[i]) << 3) + u64::from(t)
+        let info = self.items[c.item as usize];
+        let t = norm(info.to_canonical ^ c.reflection, info.group);
+        1 + (u64::from(info.rank) << 3) + u64::from(t)
     }
 }
 
@@ -206,9 +207,15 @@ fn rank_leaves(level: &FileLevel<'_>) -> Ranked {
         .map(|(i, p)| (p.0, i as u32))
         .collect();
     sorted.par_sort_unstable();
-    let to_canonical = per_leaf.iter().map(|p| p.1).collect();
-    let groups: Vec<u8> = per_leaf.iter().map(|p| p.2).collect();
-    Ranked::from_sorted(&sorted, to_canonical, &groups)
+    let items = per_leaf
+        .iter()
+        .map(|p| ItemInfo {
+            rank: 0,
+            to_canonical: p.1,
+            group: p.2,
+        })
+        .collect();
+    Ranked::from_sorted(&sorted, items)
 }
 
 /// The key of record `i` as stored (reflection 0): its slots in terms of
@@ -267,15 +274,21 @@ fn rank_nodes(
             })
         })
         .collect::<Option<_>>()?;
-    let to_canonical = keyed.iter().map(|k| k.1).collect();
-    let groups: Vec<u8> = keyed.iter().map(|k| k.2).collect();
+    let items = keyed
+        .iter()
+        .map(|k| ItemInfo {
+            rank: 0,
+            to_canonical: k.1,
+            group: k.2,
+        })
+        .collect();
     let mut sorted: Vec<(NodeKey, u32)> = keyed
         .into_par_iter()
         .enumerate()
         .map(|(i, k)| (k.0, i as u32))
         .collect();
     sorted.par_sort_unstable();
-    Some(Ranked::from_sorted(&sorted, to_canonical, &groups))
+    Some(Ranked::from_sorted(&sorted, items))
 }
 
 /// The canonical member's key of class `rank` of interior level `l`.
@@ -291,7 +304,7 @@ fn class_key(
     let key = stored_key(header, &children, below_ranked);
     Some(reflect_key(
         &key,
-        ranked.to_canonical[item as usize],
+        ranked.items[item as usize].to_canonical,
         &below_ranked.group,
     ))
 }
@@ -328,18 +341,16 @@ fn compare(
             return false;
         };
         children.iter().flatten().all(|c| {
-            let group = below_ranked.group_of_item(c.item);
-            let least = !c.shared || norm(c.reflection, group) == c.reflection;
-            let named = !check_naming
-                || c.shared == (counts[below_ranked.rank[c.item as usize] as usize] > 1);
+            let info = below_ranked.items[c.item as usize];
+            let least = !c.shared || norm(c.reflection, info.group) == c.reflection;
+            let named = !check_naming || c.shared == (counts[info.rank as usize] > 1);
             least && named
         })
     };
     let same = |i: usize| -> bool {
         let (rank, stored) = canonical[i];
-        ranked.rank[i] == rank
-            && fixes(ranked.group[rank as usize], ranked.to_canonical[i] ^ stored)
-            && references_ok(i, true)
+        let info = ranked.items[i];
+        info.rank == rank && fixes(info.group, info.to_canonical ^ stored) && references_ok(i, true)
     };
     let common = level.len.min(canonical.len());
     let first = (0..common).into_par_iter().position_first(|i| !same(i));
@@ -355,10 +366,10 @@ fn compare(
             stored_of_class[rank as usize] = stored;
         }
         let misstored = (0..level.len).into_par_iter().any(|i| {
-            let rank = ranked.rank[i] as usize;
+            let info = ranked.items[i];
             !fixes(
-                ranked.group[rank],
-                ranked.to_canonical[i] ^ stored_of_class[rank],
+                info.group,
+                info.to_canonical ^ stored_of_class[info.rank as usize],
             ) || !references_ok(i, false)
         });
         if misstored {
@@ -386,7 +397,7 @@ fn reference_counts(
     for &item in &ranked.first {
         let (_, children) = level.record(item as usize, below)?;
         for c in children.iter().flatten() {
-            let r = below_ranked.rank[c.item as usize] as usize;
+            let r = below_ranked.items[c.item as usize].rank as usize;
             counts[r] = counts[r].saturating_add(1);
         }
     }
@@ -442,6 +453,11 @@ pub(crate) fn check(
         .map(|(l, view)| FileLevel {
             view,
             starts: if view.is_leaf { &[] } else { &starts[l] },
+            index: if view.is_leaf {
+                StartIndex::default()
+            } else {
+                StartIndex::new(&starts[l], view.bytes.len() as u64)
+            },
             len: if view.is_leaf {
                 view.bytes.len() / 8
             } else {

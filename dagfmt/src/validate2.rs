@@ -36,11 +36,52 @@ use crate::reader::{self, SectionEntry};
 use crate::v2::{self, Child, LevelView};
 use crate::validate::{Findings, Stop};
 
+/// The record starts of a 2.0 node level as a bitmap with ranks, so that
+/// the item a byte offset names is found in O(1): a binary search over the
+/// starts misses the cache at most of its steps in a large level, which made
+/// it the walk's largest cost.
+#[derive(Default)]
+pub(crate) struct StartIndex {
+    /// Per 64 bytes of the level: which bytes start a record, and the
+    /// records that start before them.
+    blocks: Vec<(u64, u64)>,
+}
+
+impl StartIndex {
+    /// The index of `starts` (increasing) in a level of `len` bytes.
+    pub(crate) fn new(starts: &[u64], len: u64) -> StartIndex {
+        let mut blocks = vec![(0u64, 0u64); len.div_ceil(64) as usize];
+        for &at in starts {
+            blocks[(at / 64) as usize].0 |= 1 << (at % 64);
+        }
+        let mut before = 0u64;
+        for b in &mut blocks {
+            b.1 = before;
+            before += u64::from(b.0.count_ones());
+        }
+        StartIndex { blocks }
+    }
+
+    /// The record that starts at byte `offset`, if one does.
+    #[inline]
+    pub(crate) fn item(&self, offset: u64) -> Option<usize> {
+        let (bits, before) = *self.blocks.get(usize::try_from(offset / 64).ok()?)?;
+        let bit = offset % 64;
+        if bits >> bit & 1 == 0 {
+            return None;
+        }
+        let below = bits & ((1u64 << bit) - 1);
+        usize::try_from(before + u64::from(below.count_ones())).ok()
+    }
+}
+
 /// A level as the walk found it.
 struct Walked {
     /// Byte offset (interior) of each record, in order; for the leaf level
     /// empty (items are indices).
     starts: Vec<u64>,
+    /// `starts` indexed by offset (interior).
+    index: StartIndex,
     /// Subtree voxel count of each item (`None`: unknown).
     counts: Vec<Option<u64>>,
     /// Whether every item could be read.
@@ -55,7 +96,7 @@ impl Walked {
                 .ok()
                 .filter(|&i| i < self.counts.len())
         } else {
-            self.starts.binary_search(&target).ok()
+            self.index.item(target)
         }
     }
 }
@@ -127,6 +168,7 @@ pub(crate) fn check_levels(
             .collect();
         Walked {
             starts: Vec::new(),
+            index: StartIndex::default(),
             counts,
             complete: true,
         }
@@ -432,6 +474,7 @@ fn walk_level(
         }
     }
     Ok(Walked {
+        index: StartIndex::new(&starts, len),
         starts,
         counts,
         complete,

@@ -89,8 +89,9 @@ pub struct ValidateOptions {
     /// [`ErrorCode::FileTooLarge`] (default [`MAX_FILE_SIZE`]).
     pub max_file_size: u64,
     /// Whether large files may be checksummed on a second thread while the
-    /// levels are walked, and each level's walk split over rayon's threads
-    /// (default true). The findings are the same either way.
+    /// levels are walked, and each level's walk (and a 2.0 file's canonical
+    /// check) split over rayon's threads (default true). The findings are the
+    /// same either way.
     pub threads: bool,
 }
 
@@ -263,7 +264,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
             })
             .flatten();
         let walked = if layout.header.version_major == layout::VERSION_MAJOR_2 {
-            crate::validate2::check_levels(&layout, bytes, f)
+            crate::validate2::check_levels(&layout, bytes, f, options.threads)
         } else {
             check_levels(&layout, bytes, f, options.threads)
         };
@@ -857,9 +858,29 @@ struct Framing {
     truncated: Option<FormatError>,
 }
 
-/// Frames node level `view` ([`Framing`]).
-#[inline(always)]
+/// Frames node level `view` ([`Framing`]). Picks a build for the CPU: the
+/// framing runs on rayon's threads, in closures that do not inherit
+/// [`walk_levels_popcnt`]'s target feature.
 fn frame_level(view: &LevelView<'_>) -> Framing {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("popcnt") {
+        // SAFETY: the CPU has the POPCNT instruction (checked just above),
+        // the only feature `frame_level_popcnt` is compiled to use.
+        return unsafe { frame_level_popcnt(view) };
+    }
+    frame_level_inline(view)
+}
+
+/// [`frame_level_inline`] compiled with the POPCNT instruction (a record's
+/// length is a popcount of its child mask).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "popcnt")]
+fn frame_level_popcnt(view: &LevelView<'_>) -> Framing {
+    frame_level_inline(view)
+}
+
+#[inline(always)]
+fn frame_level_inline(view: &LevelView<'_>) -> Framing {
     match view.entry.pointer_width {
         1 => frame_records::<1>(view),
         2 => frame_records::<2>(view),
@@ -1038,7 +1059,8 @@ impl Walk<'_> {
             };
             let range = c * WALK_CHUNK_BLOCKS..((c + 1) * WALK_CHUNK_BLOCKS).min(blocks.len());
             // Err(Stop): this chunk alone reached the limit; `own` says so.
-            let _ = self.chunk::<W, C>(&mut own, child, &blocks, range, firsts[c], &mut part);
+            let _ =
+                self.chunk_for_cpu::<W, C>(&mut own, child, &blocks, range, firsts[c], &mut part);
             own
         };
         let found: Vec<Findings> = if self.threads && chunks > 1 {
@@ -1079,6 +1101,45 @@ impl Walk<'_> {
             records,
             complete,
         })
+    }
+
+    /// [`Walk::chunk`] in a build for the CPU: chunks run in closures on
+    /// rayon's threads, which do not inherit [`walk_levels_popcnt`]'s target
+    /// feature.
+    fn chunk_for_cpu<const W: usize, C: ChildLevel>(
+        &self,
+        f: &mut Findings,
+        child: &C,
+        blocks: &[WordBlock],
+        block_range: Range<usize>,
+        first_index: u64,
+        counts: &mut CountsPart<'_>,
+    ) -> Result<(), Stop> {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("popcnt") {
+            // SAFETY: the CPU has the POPCNT instruction (checked just
+            // above), the only feature `chunk_popcnt` is compiled to use.
+            return unsafe {
+                self.chunk_popcnt::<W, C>(f, child, blocks, block_range, first_index, counts)
+            };
+        }
+        self.chunk::<W, C>(f, child, blocks, block_range, first_index, counts)
+    }
+
+    /// [`Walk::chunk`] compiled with the POPCNT instruction: the walk counts
+    /// bits for every record and leaf.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "popcnt")]
+    fn chunk_popcnt<const W: usize, C: ChildLevel>(
+        &self,
+        f: &mut Findings,
+        child: &C,
+        blocks: &[WordBlock],
+        block_range: Range<usize>,
+        first_index: u64,
+        counts: &mut CountsPart<'_>,
+    ) -> Result<(), Stop> {
+        self.chunk::<W, C>(f, child, blocks, block_range, first_index, counts)
     }
 
     /// Walks the records that start in `block_range`, the first of them

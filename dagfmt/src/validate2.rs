@@ -111,6 +111,7 @@ pub(crate) fn check_levels(
     layout: &reader::Layout,
     bytes: &[u8],
     f: &mut Findings,
+    threads: bool,
 ) -> Result<(), Stop> {
     let header = &layout.header;
     let sections = &layout.sections;
@@ -245,7 +246,16 @@ pub(crate) fn check_levels(
         && leaf_level > 0
     {
         let views: Vec<LevelView<'_>> = views.iter().flatten().copied().collect();
-        crate::canonical2::check(f, &entries, &views, &starts)?;
+        let check = |f: &mut Findings| crate::canonical2::check(f, &entries, &views, &starts);
+        if threads {
+            check(f)?;
+        } else {
+            // The same work on one thread.
+            match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+                Ok(pool) => pool.install(|| check(f))?,
+                Err(_) => check(f)?,
+            }
+        }
     }
     Ok(())
 }

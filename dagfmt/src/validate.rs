@@ -7,11 +7,8 @@
 //!
 //! The work is linear in the file size: one pass of CRC-32C over every
 //! section (on a second thread for large files, see
-//! [`ValidateOptions::threads`]), one sequential read of each level's record
-//! headers to find where its records start (the levels side by side), one
-//! pass over each level's records in chunks of 2 MiB on rayon's threads
-//! (findings merged in record order, so they do not depend on the threads),
-//! and per level two bitmaps (record starts and referenced records,
+//! [`ValidateOptions::threads`]), one sequential pass over each level's
+//! records, and per level two bitmaps (record starts and referenced records,
 //! 1/16 of the level's size) plus one subtree voxel count per two words of the
 //! level (16, 32 or 64 bits as the level's depth needs: at most the level's
 //! size). Only two levels' indexes are held at a time; nothing is allocated
@@ -75,9 +72,7 @@ use crate::error::{ErrorCode, FormatError};
 use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE, SectionKind};
 use crate::packed_colors;
 use crate::reader::{self, LayoutChecks, SectionEntry};
-use rayon::prelude::*;
-use std::ops::{ControlFlow, Range};
-use std::sync::atomic::{AtomicU8, AtomicU64, Ordering::Relaxed};
+use std::ops::ControlFlow;
 
 /// Limits for [`validate_with`].
 #[derive(Clone, Debug)]
@@ -89,9 +84,9 @@ pub struct ValidateOptions {
     /// [`ErrorCode::FileTooLarge`] (default [`MAX_FILE_SIZE`]).
     pub max_file_size: u64,
     /// Whether large files may be checksummed on a second thread while the
-    /// levels are walked, and each level's walk (and a 2.0 file's canonical
-    /// check) split over rayon's threads (default true). The findings are the
-    /// same either way.
+    /// levels are walked on the calling one, and a 2.0 file's canonical check
+    /// run on rayon's threads (default true). The findings are the same
+    /// either way.
     pub threads: bool,
 }
 
@@ -266,7 +261,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
         let walked = if layout.header.version_major == layout::VERSION_MAJOR_2 {
             crate::validate2::check_levels(&layout, bytes, f, options.threads)
         } else {
-            check_levels(&layout, bytes, f, options.threads)
+            check_levels(&layout, bytes, f)
         };
         let walked = match colors {
             Some(colors) => {
@@ -358,12 +353,7 @@ fn packed_colors_count(layout: &reader::Layout) -> u64 {
 
 /// Everything after the section table except the checksums: pointer widths,
 /// the root level, the walk of the levels and the header's voxel count.
-fn check_levels(
-    layout: &reader::Layout,
-    bytes: &[u8],
-    f: &mut Findings,
-    threads: bool,
-) -> Result<(), Stop> {
+fn check_levels(layout: &reader::Layout, bytes: &[u8], f: &mut Findings) -> Result<(), Stop> {
     let header = &layout.header;
     let sections = &layout.sections;
     let leaf_level = header.depth - 2;
@@ -440,7 +430,7 @@ fn check_levels(
         AttributeRule::Zero
     };
 
-    let root_count = walk_levels(f, &levels, attributes, threads)?;
+    let root_count = walk_levels(f, &levels, attributes)?;
     if let Some(total) = root_count
         && total != header.voxel_count
     {
@@ -462,15 +452,14 @@ fn walk_levels(
     f: &mut Findings,
     levels: &[Option<LevelView<'_>>],
     attributes: AttributeRule,
-    threads: bool,
 ) -> Result<Option<u64>, Stop> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("popcnt") {
         // SAFETY: the CPU has the POPCNT instruction (checked just above),
         // the only feature `walk_levels_popcnt` is compiled to use.
-        return unsafe { walk_levels_popcnt(f, levels, attributes, threads) };
+        return unsafe { walk_levels_popcnt(f, levels, attributes) };
     }
-    walk_levels_inline(f, levels, attributes, threads)
+    walk_levels_inline(f, levels, attributes)
 }
 
 /// [`walk_levels_inline`] compiled with the POPCNT instruction: the walk
@@ -482,9 +471,8 @@ fn walk_levels_popcnt(
     f: &mut Findings,
     levels: &[Option<LevelView<'_>>],
     attributes: AttributeRule,
-    threads: bool,
 ) -> Result<Option<u64>, Stop> {
-    walk_levels_inline(f, levels, attributes, threads)
+    walk_levels_inline(f, levels, attributes)
 }
 
 #[inline(always)]
@@ -492,21 +480,8 @@ fn walk_levels_inline(
     f: &mut Findings,
     levels: &[Option<LevelView<'_>>],
     attributes: AttributeRule,
-    threads: bool,
 ) -> Result<Option<u64>, Stop> {
     let leaf_level = levels.len() - 1;
-    // Where each node level's records start: a sequential read of each
-    // record's child mask, independent of the other levels, so the levels
-    // are framed side by side before the walks split each level over threads.
-    let frame = |l: usize| match &levels[l] {
-        Some(view) if l < leaf_level => Some(frame_level(view)),
-        _ => None,
-    };
-    let mut framings: Vec<Option<Framing>> = if threads {
-        (0..levels.len()).into_par_iter().map(frame).collect()
-    } else {
-        (0..levels.len()).map(frame).collect()
-    };
     let mut below = match &levels[leaf_level] {
         Some(view) => Below::Leaves(walk_leaf_level(f, view)?),
         None => Below::Unusable,
@@ -519,7 +494,7 @@ fn walk_levels_inline(
             ) {
                 (false, _) => None,
                 (true, None) => Some(0),
-                (true, Some(c)) => Some(u64::from(c.load(Relaxed) & LEAF_COUNT_MASK)),
+                (true, Some(&c)) => Some(u64::from(c & LEAF_COUNT_MASK)),
             }
         }
         _ => None,
@@ -529,18 +504,7 @@ fn walk_levels_inline(
             below = Below::Unusable;
             continue;
         };
-        let framing = framings[l]
-            .take()
-            .expect("every usable node level is framed");
-        let walked = walk_node_level(
-            f,
-            view,
-            framing,
-            &below,
-            attributes,
-            leaf_level - l,
-            threads,
-        )?;
+        let walked = walk_node_level(f, view, &mut below, attributes, leaf_level - l)?;
         check_unreferenced(f, &below, &levels[l + 1])?;
         if l == 0 && walked.complete && walked.records == view.entry.item_count {
             root_count = match walked.counts.first() {
@@ -589,11 +553,9 @@ enum Below {
 
 /// The leaf level, walked: per leaf one byte, its voxel count (0 to 64) with
 /// [`LEAF_REFERENCED`] set once a pointer addresses it. One byte instead of
-/// the 8-byte mask keeps the pointers' random accesses in cache. Atomic
-/// because the walk of the level above marks it from several threads (a
-/// relaxed load and store: every writer writes the same value).
+/// the 8-byte mask keeps the pointers' random accesses in cache.
 struct LeafLevel {
-    counts: Vec<AtomicU8>,
+    counts: Vec<u8>,
 }
 
 /// Set in a [`LeafLevel`] count byte when some pointer addresses the leaf.
@@ -603,13 +565,12 @@ const LEAF_COUNT_MASK: u8 = 0x7F;
 
 /// Per 64 words of a node level: which words start a record and which
 /// records some pointer addresses. Kept together so that following a pointer
-/// touches one cache line. `referenced` is set by the walk of the level
-/// above, split over threads.
-#[derive(Default)]
+/// touches one cache line.
+#[derive(Clone, Copy, Default)]
 #[repr(C, align(16))]
 struct WordBlock {
     starts: u64,
-    referenced: AtomicU64,
+    referenced: u64,
 }
 
 /// A node level, walked.
@@ -631,7 +592,7 @@ struct NodeLevel<T> {
 }
 
 /// An unsigned integer type holding subtree voxel counts, `MAX` meaning unknown.
-trait CountSlot: Copy + Sync {
+trait CountSlot: Copy {
     /// The count ([`UNKNOWN`] for the unknown slot).
     fn get(self) -> u64;
     /// Stores `count`; a count the type cannot hold becomes unknown.
@@ -676,6 +637,15 @@ impl OwnCounts {
         }
     }
 
+    #[inline(always)]
+    fn set(&mut self, slot: usize, count: u64) {
+        match self {
+            OwnCounts::U16(v) => v[slot] = u16::put(count),
+            OwnCounts::U32(v) => v[slot] = u32::put(count),
+            OwnCounts::U64(v) => v[slot] = u64::put(count),
+        }
+    }
+
     fn first(&self) -> Option<u64> {
         match self {
             OwnCounts::U16(v) => v.first().map(|c| c.get()),
@@ -696,9 +666,9 @@ enum Visit {
 }
 
 /// The level a node level's pointers lead into.
-trait ChildLevel: Sync {
+trait ChildLevel {
     /// Follows pointer `p`, marking its target referenced.
-    fn visit(&self, p: u32) -> Visit;
+    fn visit(&mut self, p: u32) -> Visit;
     /// Addressable units: words of a node level, leaves of the leaf level.
     fn units(&self) -> u64;
     /// "word" or "leaf", for messages.
@@ -710,7 +680,7 @@ struct Unchecked;
 
 impl ChildLevel for Unchecked {
     #[inline(always)]
-    fn visit(&self, _p: u32) -> Visit {
+    fn visit(&mut self, _p: u32) -> Visit {
         Visit::Count(UNKNOWN)
     }
     fn units(&self) -> u64 {
@@ -721,15 +691,12 @@ impl ChildLevel for Unchecked {
 
 impl ChildLevel for LeafLevel {
     #[inline(always)]
-    fn visit(&self, p: u32) -> Visit {
-        let Some(c) = self.counts.get(p as usize) else {
+    fn visit(&mut self, p: u32) -> Visit {
+        let Some(c) = self.counts.get_mut(p as usize) else {
             return Visit::OutOfRange;
         };
-        let v = c.load(Relaxed);
-        if v & LEAF_REFERENCED == 0 {
-            c.store(v | LEAF_REFERENCED, Relaxed);
-        }
-        Visit::Count(u64::from(v & LEAF_COUNT_MASK))
+        *c |= LEAF_REFERENCED;
+        Visit::Count(u64::from(*c & LEAF_COUNT_MASK))
     }
     fn units(&self) -> u64 {
         self.counts.len() as u64
@@ -739,7 +706,7 @@ impl ChildLevel for LeafLevel {
 
 impl<T: CountSlot> ChildLevel for NodeLevel<T> {
     #[inline(always)]
-    fn visit(&self, p: u32) -> Visit {
+    fn visit(&mut self, p: u32) -> Visit {
         let w = u64::from(p);
         if w >= self.words {
             return Visit::OutOfRange;
@@ -749,17 +716,14 @@ impl<T: CountSlot> ChildLevel for NodeLevel<T> {
             .counts
             .get((w >> 1) as usize)
             .map_or(UNKNOWN, |c| c.get());
-        let Some(block) = self.blocks.get((w >> 6) as usize) else {
+        let Some(block) = self.blocks.get_mut((w >> 6) as usize) else {
             return Visit::OutOfRange;
         };
         let bit = 1u64 << (w & 63);
         if block.starts & bit == 0 {
             return Visit::NotAtNode;
         }
-        // Most records are named once: read before the locked write.
-        if block.referenced.load(Relaxed) & bit == 0 {
-            block.referenced.fetch_or(bit, Relaxed);
-        }
+        block.referenced |= bit;
         Visit::Count(count)
     }
     fn units(&self) -> u64 {
@@ -773,24 +737,16 @@ impl<T: CountSlot> ChildLevel for NodeLevel<T> {
 fn walk_leaf_level(f: &mut Findings, view: &LevelView<'_>) -> Result<LeafLevel, Stop> {
     let whole = view.bytes.len() / 8 * 8;
     let masks: &[[u8; 8]] = bytemuck::cast_slice(&view.bytes[..whole]);
-    let counts: Vec<AtomicU8> = masks
+    let counts: Vec<u8> = masks
         .iter()
-        .map(|m| AtomicU8::new(u64::from_ne_bytes(*m).count_ones() as u8))
+        .map(|m| u64::from_ne_bytes(*m).count_ones() as u8)
         .collect();
     // A zero mask is the only one with count 0; look per leaf only where a chunk has one.
     for (c, chunk) in counts.chunks(256).enumerate() {
-        if chunk
-            .iter()
-            .fold(u8::MAX, |acc, n| acc.min(n.load(Relaxed)))
-            != 0
-        {
+        if chunk.iter().fold(u8::MAX, |acc, &n| acc.min(n)) != 0 {
             continue;
         }
-        for (i, _) in chunk
-            .iter()
-            .enumerate()
-            .filter(|(_, n)| n.load(Relaxed) == 0)
-        {
+        for (i, _) in chunk.iter().enumerate().filter(|&(_, &n)| n == 0) {
             let index = (c * 256 + i) as u64;
             f.report(
                 FormatError::new(
@@ -845,437 +801,203 @@ impl WalkedLevel {
     }
 }
 
-/// Where the records of a node level start, read from each record's child
-/// mask alone (the framing: sequential, since a record's length is in its
-/// header).
-struct Framing {
-    /// Record starts set; nothing referenced yet.
-    blocks: Vec<WordBlock>,
-    /// Records found.
-    records: u64,
-    /// The record that runs past the end of the level (E042), which ends
-    /// the framing.
-    truncated: Option<FormatError>,
-}
-
-/// Frames node level `view` ([`Framing`]). Picks a build for the CPU: the
-/// framing runs on rayon's threads, in closures that do not inherit
-/// [`walk_levels_popcnt`]'s target feature.
-fn frame_level(view: &LevelView<'_>) -> Framing {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("popcnt") {
-        // SAFETY: the CPU has the POPCNT instruction (checked just above),
-        // the only feature `frame_level_popcnt` is compiled to use.
-        return unsafe { frame_level_popcnt(view) };
-    }
-    frame_level_inline(view)
-}
-
-/// [`frame_level_inline`] compiled with the POPCNT instruction (a record's
-/// length is a popcount of its child mask).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "popcnt")]
-fn frame_level_popcnt(view: &LevelView<'_>) -> Framing {
-    frame_level_inline(view)
-}
-
-#[inline(always)]
-fn frame_level_inline(view: &LevelView<'_>) -> Framing {
-    match view.entry.pointer_width {
-        1 => frame_records::<1>(view),
-        2 => frame_records::<2>(view),
-        3 => frame_records::<3>(view),
-        // A usable node level has width 1 to 4.
-        _ => frame_records::<4>(view),
-    }
-}
-
-#[inline(always)]
-fn frame_records<const W: usize>(view: &LevelView<'_>) -> Framing {
-    let sec = view.bytes;
-    let len = sec.len();
-    let mut blocks: Vec<WordBlock> = (0..len.div_ceil(4).div_ceil(64))
-        .map(|_| WordBlock::default())
-        .collect();
-    let mut pos = 0usize;
-    let mut index = 0u64;
-    let mut truncated = None;
-    while pos < len {
-        let Some(&mask) = sec.get(pos).filter(|_| pos + 4 <= len) else {
-            truncated = Some((pos, 4));
-            break;
-        };
-        let size = 4 + (mask.count_ones() as usize * W).next_multiple_of(4);
-        if pos + size > len {
-            truncated = Some((pos, size));
-            break;
-        }
-        let word = pos / 4;
-        blocks[word >> 6].starts |= 1 << (word & 63);
-        pos += size;
-        index += 1;
-    }
-    Framing {
-        blocks,
-        records: index,
-        truncated: truncated.map(|(pos, size)| {
-            truncated_node(
-                view.entry.offset + pos as u64,
-                view.level(),
-                index,
-                len - pos,
-                size,
-            )
-        }),
-    }
-}
-
-/// 64-word blocks a level's walk hands to one thread at a time: 2 MiB of
-/// records, so that a level of a large file splits over the cores and one
-/// of a small file is walked in one piece.
-const WALK_CHUNK_BLOCKS: usize = 1 << 13;
-
-/// Part of a level's subtree counts: the slots of one chunk of the walk.
-enum CountsPart<'a> {
-    U16(&'a mut [u16]),
-    U32(&'a mut [u32]),
-    U64(&'a mut [u64]),
-}
-
-impl CountsPart<'_> {
-    #[inline(always)]
-    fn set(&mut self, slot: usize, count: u64) {
-        match self {
-            CountsPart::U16(v) => v[slot] = u16::put(count),
-            CountsPart::U32(v) => v[slot] = u32::put(count),
-            CountsPart::U64(v) => v[slot] = u64::put(count),
-        }
-    }
-}
-
-impl OwnCounts {
-    /// The slots in parts of `size`.
-    fn parts(&mut self, size: usize) -> Vec<CountsPart<'_>> {
-        match self {
-            OwnCounts::U16(v) => v.chunks_mut(size).map(CountsPart::U16).collect(),
-            OwnCounts::U32(v) => v.chunks_mut(size).map(CountsPart::U32).collect(),
-            OwnCounts::U64(v) => v.chunks_mut(size).map(CountsPart::U64).collect(),
-        }
-    }
-}
-
 /// Walks node level `view`, `levels_above_leaves` levels above the leaf level.
 #[inline(always)]
 fn walk_node_level(
     f: &mut Findings,
     view: &LevelView<'_>,
-    framing: Framing,
-    below: &Below,
+    below: &mut Below,
     attributes: AttributeRule,
     levels_above_leaves: usize,
-    threads: bool,
 ) -> Result<WalkedLevel, Stop> {
     let counts = OwnCounts::new(view.bytes.len(), levels_above_leaves);
-    let walk = Walk {
-        view,
-        attributes,
-        threads,
-    };
     match below {
-        Below::Unusable => walk.width(f, &Unchecked, framing, counts),
-        Below::Leaves(leaves) => walk.width(f, leaves, framing, counts),
-        Below::Nodes16(nodes) => walk.width(f, nodes, framing, counts),
-        Below::Nodes32(nodes) => walk.width(f, nodes, framing, counts),
-        Below::Nodes64(nodes) => walk.width(f, nodes, framing, counts),
+        Below::Unusable => walk_width(f, view, &mut Unchecked, attributes, counts),
+        Below::Leaves(leaves) => walk_width(f, view, leaves, attributes, counts),
+        Below::Nodes16(nodes) => walk_width(f, view, nodes, attributes, counts),
+        Below::Nodes32(nodes) => walk_width(f, view, nodes, attributes, counts),
+        Below::Nodes64(nodes) => walk_width(f, view, nodes, attributes, counts),
     }
 }
 
-/// The walk of one node level.
-struct Walk<'a> {
-    view: &'a LevelView<'a>,
+#[inline(always)]
+fn walk_width<C: ChildLevel>(
+    f: &mut Findings,
+    view: &LevelView<'_>,
+    child: &mut C,
     attributes: AttributeRule,
-    /// Whether chunks of the level may be walked on several threads.
-    threads: bool,
+    counts: OwnCounts,
+) -> Result<WalkedLevel, Stop> {
+    match view.entry.pointer_width {
+        1 => walk_records::<1, C>(f, view, child, attributes, counts),
+        2 => walk_records::<2, C>(f, view, child, attributes, counts),
+        3 => walk_records::<3, C>(f, view, child, attributes, counts),
+        // A usable node level has width 1 to 4.
+        _ => walk_records::<4, C>(f, view, child, attributes, counts),
+    }
 }
 
-impl Walk<'_> {
-    #[inline(always)]
-    fn width<C: ChildLevel>(
-        &self,
-        f: &mut Findings,
-        child: &C,
-        framing: Framing,
-        counts: OwnCounts,
-    ) -> Result<WalkedLevel, Stop> {
-        match self.view.entry.pointer_width {
-            1 => self.records::<1, C>(f, child, framing, counts),
-            2 => self.records::<2, C>(f, child, framing, counts),
-            3 => self.records::<3, C>(f, child, framing, counts),
-            // A usable node level has width 1 to 4.
-            _ => self.records::<4, C>(f, child, framing, counts),
-        }
-    }
-
-    /// Walks the records of a node level with pointer width `W`: pointers,
-    /// padding, attributes; indexes the level for its parent. The level is
-    /// split into chunks of [`WALK_CHUNK_BLOCKS`] blocks, walked on rayon's
-    /// threads, each with its own findings; they are reported in chunk order,
-    /// so the findings (and where the error limit cuts them) are those of
-    /// one walk in record order.
-    #[inline(always)]
-    fn records<const W: usize, C: ChildLevel>(
-        &self,
-        f: &mut Findings,
-        child: &C,
-        framing: Framing,
-        mut counts: OwnCounts,
-    ) -> Result<WalkedLevel, Stop> {
-        let view = self.view;
-        let Framing {
-            blocks,
-            records,
-            truncated,
-        } = framing;
-        let chunks = blocks.len().div_ceil(WALK_CHUNK_BLOCKS);
-        // Records before each chunk, for the record numbers reported.
-        let mut firsts = Vec::with_capacity(chunks);
-        let mut before = 0u64;
-        for chunk in blocks.chunks(WALK_CHUNK_BLOCKS) {
-            firsts.push(before);
-            before += chunk
-                .iter()
-                .map(|b| u64::from(b.starts.count_ones()))
-                .sum::<u64>();
-        }
-        // Two count slots a 64-word block; the last chunk's slots may stop
-        // short of its blocks' words.
-        let parts = counts.parts(WALK_CHUNK_BLOCKS * 32);
-        let room = f.max.saturating_sub(f.errors.len());
-        let walk_chunk = |(c, mut part): (usize, CountsPart<'_>)| {
-            let mut own = Findings {
-                errors: Vec::new(),
-                max: room,
-                truncated: false,
-            };
-            let range = c * WALK_CHUNK_BLOCKS..((c + 1) * WALK_CHUNK_BLOCKS).min(blocks.len());
-            // Err(Stop): this chunk alone reached the limit; `own` says so.
-            let _ =
-                self.chunk_for_cpu::<W, C>(&mut own, child, &blocks, range, firsts[c], &mut part);
-            own
+/// Walks the records of a node level with pointer width `W`: framing,
+/// pointers, attributes; indexes the level for its parent.
+#[inline(always)]
+fn walk_records<const W: usize, C: ChildLevel>(
+    f: &mut Findings,
+    view: &LevelView<'_>,
+    child: &mut C,
+    attributes: AttributeRule,
+    mut counts: OwnCounts,
+) -> Result<WalkedLevel, Stop> {
+    let sec = view.bytes;
+    let len = sec.len();
+    let level = view.level();
+    let base = view.entry.offset;
+    let words = len as u64 / 4;
+    let mut blocks = vec![WordBlock::default(); len.div_ceil(4).div_ceil(64)];
+    let mut previous_slot = usize::MAX;
+    let mut pos = 0usize;
+    let mut index = 0u64;
+    let mut complete = true;
+    while pos < len {
+        let Some(head) = sec.get(pos..pos + 4) else {
+            complete = false;
+            f.report(truncated_node(
+                base + pos as u64,
+                level,
+                index,
+                len - pos,
+                4,
+            ))?;
+            break;
         };
-        let found: Vec<Findings> = if self.threads && chunks > 1 {
-            parts.into_par_iter().enumerate().map(walk_chunk).collect()
-        } else {
-            parts.into_iter().enumerate().map(walk_chunk).collect()
+        let header = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+        let mask = header & 0xff;
+        let pointer_bytes = mask.count_ones() as usize * W;
+        let size = 4 + pointer_bytes.next_multiple_of(4);
+        let Some(record) = sec.get(pos..pos + size) else {
+            complete = false;
+            f.report(truncated_node(
+                base + pos as u64,
+                level,
+                index,
+                len - pos,
+                size,
+            ))?;
+            break;
         };
-        for own in found {
-            for e in own.errors {
-                f.report(e)?;
-            }
-            if own.truncated {
-                f.report_overflow()?;
-            }
-        }
-        let complete = truncated.is_none();
-        if let Some(e) = truncated {
-            f.report(e)?;
-        }
-        if complete && records != view.entry.item_count {
+        let word = pos / 4;
+        blocks[word >> 6].starts |= 1 << (word & 63);
+        let at = base + pos as u64;
+        if mask == 0 {
             f.report(
                 FormatError::new(
-                    ErrorCode::ItemCountMismatch,
-                    view.entry.entry_offset() + 24,
-                    format!(
-                        "level {} declares {} nodes, its bytes hold {records}",
-                        view.level(),
-                        view.entry.item_count
-                    ),
+                    ErrorCode::EmptyChildMask,
+                    at,
+                    "node has an empty child mask",
                 )
-                .at_level(view.level()),
+                .at_level(level)
+                .at_node(index),
             )?;
         }
-        Ok(WalkedLevel {
-            words: view.bytes.len() as u64 / 4,
-            blocks,
-            counts,
-            records,
-            complete,
-        })
-    }
-
-    /// [`Walk::chunk`] in a build for the CPU: chunks run in closures on
-    /// rayon's threads, which do not inherit [`walk_levels_popcnt`]'s target
-    /// feature.
-    fn chunk_for_cpu<const W: usize, C: ChildLevel>(
-        &self,
-        f: &mut Findings,
-        child: &C,
-        blocks: &[WordBlock],
-        block_range: Range<usize>,
-        first_index: u64,
-        counts: &mut CountsPart<'_>,
-    ) -> Result<(), Stop> {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("popcnt") {
-            // SAFETY: the CPU has the POPCNT instruction (checked just
-            // above), the only feature `chunk_popcnt` is compiled to use.
-            return unsafe {
-                self.chunk_popcnt::<W, C>(f, child, blocks, block_range, first_index, counts)
-            };
-        }
-        self.chunk::<W, C>(f, child, blocks, block_range, first_index, counts)
-    }
-
-    /// [`Walk::chunk`] compiled with the POPCNT instruction: the walk counts
-    /// bits for every record and leaf.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "popcnt")]
-    fn chunk_popcnt<const W: usize, C: ChildLevel>(
-        &self,
-        f: &mut Findings,
-        child: &C,
-        blocks: &[WordBlock],
-        block_range: Range<usize>,
-        first_index: u64,
-        counts: &mut CountsPart<'_>,
-    ) -> Result<(), Stop> {
-        self.chunk::<W, C>(f, child, blocks, block_range, first_index, counts)
-    }
-
-    /// Walks the records that start in `block_range`, the first of them
-    /// record `first_index`; `counts` holds the range's count slots.
-    #[inline(always)]
-    fn chunk<const W: usize, C: ChildLevel>(
-        &self,
-        f: &mut Findings,
-        child: &C,
-        blocks: &[WordBlock],
-        block_range: Range<usize>,
-        first_index: u64,
-        counts: &mut CountsPart<'_>,
-    ) -> Result<(), Stop> {
-        let view = self.view;
-        let sec = view.bytes;
-        let level = view.level();
-        let base = view.entry.offset;
-        let first_slot = block_range.start * 32;
-        // A record's count slot is its first word / 2, so no two chunks
-        // (whole blocks of 64 words) share one.
-        let mut previous_slot = usize::MAX;
-        let mut index = first_index;
-        for b in block_range {
-            let mut starts = blocks[b].starts;
-            while starts != 0 {
-                let word = b * 64 + starts.trailing_zeros() as usize;
-                starts &= starts - 1;
-                let pos = word * 4;
-                // The framing found the whole record inside the level.
-                let Some(head) = sec.get(pos..pos + 4) else {
-                    continue;
-                };
-                let header = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
-                let mask = header & 0xff;
-                let pointer_bytes = mask.count_ones() as usize * W;
-                let size = 4 + pointer_bytes.next_multiple_of(4);
-                let Some(record) = sec.get(pos..pos + size) else {
-                    continue;
-                };
-                let at = base + pos as u64;
-                if mask == 0 {
-                    f.report(
-                        FormatError::new(
-                            ErrorCode::EmptyChildMask,
-                            at,
-                            "node has an empty child mask",
-                        )
-                        .at_level(level)
-                        .at_node(index),
-                    )?;
+        let mut count = 0u64;
+        for (rank, chunk) in record[4..4 + pointer_bytes].chunks_exact(W).enumerate() {
+            let mut p = 0u32;
+            for (j, &b) in chunk.iter().enumerate() {
+                p |= u32::from(b) << (8 * j);
+            }
+            match child.visit(p) {
+                Visit::Count(c) => count = count.saturating_add(c),
+                Visit::OutOfRange => {
+                    count = UNKNOWN;
+                    f.report(bad_pointer::<C>(
+                        true,
+                        at + 4 + (rank * W) as u64,
+                        level,
+                        index,
+                        p,
+                        child.units(),
+                    ))?;
                 }
-                let mut count = 0u64;
-                for (rank, chunk) in record[4..4 + pointer_bytes].chunks_exact(W).enumerate() {
-                    let mut p = 0u32;
-                    for (j, &b) in chunk.iter().enumerate() {
-                        p |= u32::from(b) << (8 * j);
-                    }
-                    match child.visit(p) {
-                        Visit::Count(c) => count = count.saturating_add(c),
-                        Visit::OutOfRange => {
-                            count = UNKNOWN;
-                            f.report(bad_pointer::<C>(
-                                true,
-                                at + 4 + (rank * W) as u64,
-                                level,
-                                index,
-                                p,
-                                child.units(),
-                            ))?;
-                        }
-                        Visit::NotAtNode => {
-                            count = UNKNOWN;
-                            f.report(bad_pointer::<C>(
-                                false,
-                                at + 4 + (rank * W) as u64,
-                                level,
-                                index,
-                                p,
-                                child.units(),
-                            ))?;
-                        }
-                    }
+                Visit::NotAtNode => {
+                    count = UNKNOWN;
+                    f.report(bad_pointer::<C>(
+                        false,
+                        at + 4 + (rank * W) as u64,
+                        level,
+                        index,
+                        p,
+                        child.units(),
+                    ))?;
                 }
-                if let Some(i) = record[4 + pointer_bytes..].iter().position(|&b| b != 0) {
-                    f.report(
-                        FormatError::new(
-                            ErrorCode::NonzeroNodePadding,
-                            at + (4 + pointer_bytes + i) as u64,
-                            "padding after the node's pointers is not zero",
-                        )
-                        .at_level(level)
-                        .at_node(index),
-                    )?;
-                }
-                let stored = header >> layout::CHILD_MASK_BITS;
-                match self.attributes {
-                    AttributeRule::Zero if stored != 0 => f.report(
-                        FormatError::new(
-                            ErrorCode::NonzeroAttribute,
-                            at,
-                            format!(
-                                "attribute kind 0 but the node's attribute bits hold {stored:#x}"
-                            ),
-                        )
-                        .at_level(level)
-                        .at_node(index),
-                    )?,
-                    AttributeRule::VoxelCount if count != UNKNOWN => {
-                        let expected = if count >= u64::from(COUNT_SATURATED) {
-                            COUNT_SATURATED
-                        } else {
-                            count as u32
-                        };
-                        if stored != expected {
-                            f.report(wrong_count(at, level, index, stored, count))?;
-                        }
-                    }
-                    _ => {}
-                }
-                let slot = word / 2;
-                // A slot shared with the previous record (after a 4-byte record) stays unknown.
-                counts.set(
-                    slot - first_slot,
-                    if slot != previous_slot {
-                        count
-                    } else {
-                        UNKNOWN
-                    },
-                );
-                previous_slot = slot;
-                index += 1;
             }
         }
-        Ok(())
+        if let Some(i) = record[4 + pointer_bytes..].iter().position(|&b| b != 0) {
+            f.report(
+                FormatError::new(
+                    ErrorCode::NonzeroNodePadding,
+                    at + (4 + pointer_bytes + i) as u64,
+                    "padding after the node's pointers is not zero",
+                )
+                .at_level(level)
+                .at_node(index),
+            )?;
+        }
+        let stored = header >> layout::CHILD_MASK_BITS;
+        match attributes {
+            AttributeRule::Zero if stored != 0 => f.report(
+                FormatError::new(
+                    ErrorCode::NonzeroAttribute,
+                    at,
+                    format!("attribute kind 0 but the node's attribute bits hold {stored:#x}"),
+                )
+                .at_level(level)
+                .at_node(index),
+            )?,
+            AttributeRule::VoxelCount if count != UNKNOWN => {
+                let expected = if count >= u64::from(COUNT_SATURATED) {
+                    COUNT_SATURATED
+                } else {
+                    count as u32
+                };
+                if stored != expected {
+                    f.report(wrong_count(at, level, index, stored, count))?;
+                }
+            }
+            _ => {}
+        }
+        let slot = word / 2;
+        // A slot shared with the previous record (after a 4-byte record) stays unknown.
+        counts.set(
+            slot,
+            if slot != previous_slot {
+                count
+            } else {
+                UNKNOWN
+            },
+        );
+        previous_slot = slot;
+        pos += size;
+        index += 1;
     }
+    if complete && index != view.entry.item_count {
+        f.report(
+            FormatError::new(
+                ErrorCode::ItemCountMismatch,
+                view.entry.entry_offset() + 24,
+                format!(
+                    "level {level} declares {} nodes, its bytes hold {index}",
+                    view.entry.item_count
+                ),
+            )
+            .at_level(level),
+        )?;
+    }
+    Ok(WalkedLevel {
+        words,
+        blocks,
+        counts,
+        records: index,
+        complete,
+    })
 }
 
 #[cold]
@@ -1360,17 +1082,13 @@ fn check_unreferenced(
         Below::Unusable => {}
         Below::Leaves(leaves) => {
             for (c, chunk) in leaves.counts.chunks(256).enumerate() {
-                if chunk
-                    .iter()
-                    .fold(LEAF_REFERENCED, |acc, n| acc & n.load(Relaxed))
-                    != 0
-                {
+                if chunk.iter().fold(LEAF_REFERENCED, |acc, &n| acc & n) != 0 {
                     continue;
                 }
                 for (i, _) in chunk
                     .iter()
                     .enumerate()
-                    .filter(|(_, n)| n.load(Relaxed) & LEAF_REFERENCED == 0)
+                    .filter(|&(_, &n)| n & LEAF_REFERENCED == 0)
                 {
                     let index = (c * 256 + i) as u64;
                     report(f, index, index * 8, "leaf")?;
@@ -1383,7 +1101,7 @@ fn check_unreferenced(
             // Records before the current block, for the record numbers reported.
             let mut rank = 0u64;
             for (b, block) in blocks.iter().enumerate() {
-                let mut missing = block.starts & !block.referenced.load(Relaxed);
+                let mut missing = block.starts & !block.referenced;
                 while missing != 0 {
                     let bit = missing.trailing_zeros();
                     missing &= missing - 1;

@@ -27,6 +27,7 @@
 pub mod assemble;
 pub mod batch;
 pub mod builder;
+mod canonical2;
 pub mod error;
 #[doc(hidden)]
 pub mod fuzzing;

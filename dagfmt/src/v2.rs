@@ -399,7 +399,7 @@ pub fn child_address(
 type Key = NodeKey;
 
 /// The least reflection in the coset `t ^ stab` (`stab` a bit set of reflections).
-fn norm(t: u8, stab: u8) -> u8 {
+pub(crate) fn norm(t: u8, stab: u8) -> u8 {
     // Most classes have no symmetry: only the identity leaves them unchanged.
     if stab == 1 {
         return t;
@@ -413,7 +413,7 @@ fn norm(t: u8, stab: u8) -> u8 {
 
 /// Reflects a key by `r`: slot p moves to p ^ r, each reference's reflection
 /// is XORed with r and normalised in its child's stabiliser.
-fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
+pub(crate) fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
     let mut out = Key {
         slots: [0; 8],
         attribute: key.attribute,

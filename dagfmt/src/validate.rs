@@ -84,7 +84,9 @@ pub struct ValidateOptions {
     /// [`ErrorCode::FileTooLarge`] (default [`MAX_FILE_SIZE`]).
     pub max_file_size: u64,
     /// Whether large files may be checksummed on a second thread while the
-    /// levels are walked on the calling one (default true).
+    /// levels are walked on the calling one, and a 2.0 file's canonical check
+    /// run on rayon's threads (default true). The findings are the same
+    /// either way.
     pub threads: bool,
 }
 
@@ -257,7 +259,7 @@ fn check_file(bytes: &[u8], options: &ValidateOptions, f: &mut Findings) -> Resu
             })
             .flatten();
         let walked = if layout.header.version_major == layout::VERSION_MAJOR_2 {
-            crate::validate2::check_levels(&layout, bytes, f)
+            crate::validate2::check_levels(&layout, bytes, f, options.threads)
         } else {
             check_levels(&layout, bytes, f)
         };

@@ -16,14 +16,15 @@
 //!    then, for the level below, every node named as §23.3 says (E078);
 //!    and the attributes (E060, E061) from the exact subtree counts.
 //! 4. The header's voxel count (E062).
-//! 5. Only when nothing above was found: the canonical form (E075 – E077).
-//!    The file's voxels are re-encoded ([`crate::v2file::downgrade`], then
-//!    [`crate::v2::encode`]) and compared with the file, deepest level
-//!    first; at the deepest level that differs, more items than the
-//!    canonical encoding is E075 (a class stored twice), the same items in
-//!    another order E077, otherwise E076; each is reported once, at the
-//!    first item of that level that differs. This step costs a 1.0 build
-//!    and a 2.0 encoding of the file's voxels.
+//! 5. Only when nothing above was found: the canonical form (E075 – E077),
+//!    on the file's own records ([`crate::canonical2`]): the intrinsic keys
+//!    and ranks of every level bottom-up, the canonical order of every level
+//!    top-down, each level compared with it item by item; the deepest level
+//!    that differs gives E075 (two items of one class), E076 (an item stored
+//!    in another reflection than the canonical one, or a reference without
+//!    its least reflection) or E077 (another order), at its first item that
+//!    differs. Time O(n log n) in the items, memory 6 bytes an item plus one
+//!    level's keys.
 //!
 //! A level that cannot be interpreted (E020, E024, E025, E070) is not
 //! walked, and neither are the rules that need it (E073 and E078 into it,
@@ -35,11 +36,52 @@ use crate::reader::{self, SectionEntry};
 use crate::v2::{self, Child, LevelView};
 use crate::validate::{Findings, Stop};
 
+/// The record starts of a 2.0 node level as a bitmap with ranks, so that
+/// the item a byte offset names is found in O(1): a binary search over the
+/// starts misses the cache at most of its steps in a large level, which made
+/// it the walk's largest cost.
+#[derive(Default)]
+pub(crate) struct StartIndex {
+    /// Per 64 bytes of the level: which bytes start a record, and the
+    /// records that start before them.
+    blocks: Vec<(u64, u64)>,
+}
+
+impl StartIndex {
+    /// The index of `starts` (increasing) in a level of `len` bytes.
+    pub(crate) fn new(starts: &[u64], len: u64) -> StartIndex {
+        let mut blocks = vec![(0u64, 0u64); len.div_ceil(64) as usize];
+        for &at in starts {
+            blocks[(at / 64) as usize].0 |= 1 << (at % 64);
+        }
+        let mut before = 0u64;
+        for b in &mut blocks {
+            b.1 = before;
+            before += u64::from(b.0.count_ones());
+        }
+        StartIndex { blocks }
+    }
+
+    /// The record that starts at byte `offset`, if one does.
+    #[inline]
+    pub(crate) fn item(&self, offset: u64) -> Option<usize> {
+        let (bits, before) = *self.blocks.get(usize::try_from(offset / 64).ok()?)?;
+        let bit = offset % 64;
+        if bits >> bit & 1 == 0 {
+            return None;
+        }
+        let below = bits & ((1u64 << bit) - 1);
+        usize::try_from(before + u64::from(below.count_ones())).ok()
+    }
+}
+
 /// A level as the walk found it.
 struct Walked {
     /// Byte offset (interior) of each record, in order; for the leaf level
     /// empty (items are indices).
     starts: Vec<u64>,
+    /// `starts` indexed by offset (interior).
+    index: StartIndex,
     /// Subtree voxel count of each item (`None`: unknown).
     counts: Vec<Option<u64>>,
     /// Whether every item could be read.
@@ -54,7 +96,7 @@ impl Walked {
                 .ok()
                 .filter(|&i| i < self.counts.len())
         } else {
-            self.starts.binary_search(&target).ok()
+            self.index.item(target)
         }
     }
 }
@@ -69,6 +111,7 @@ pub(crate) fn check_levels(
     layout: &reader::Layout,
     bytes: &[u8],
     f: &mut Findings,
+    threads: bool,
 ) -> Result<(), Stop> {
     let header = &layout.header;
     let sections = &layout.sections;
@@ -126,6 +169,7 @@ pub(crate) fn check_levels(
             .collect();
         Walked {
             starts: Vec::new(),
+            index: StartIndex::default(),
             counts,
             complete: true,
         }
@@ -147,6 +191,8 @@ pub(crate) fn check_levels(
     }
 
     let mut root_count = None;
+    // Record offsets of every node level, for the canonical form (step 5).
+    let mut starts: Vec<Vec<u64>> = vec![Vec::new(); leaf_level + 1];
     for l in (0..leaf_level).rev() {
         let Some(view) = &views[l] else {
             below = None;
@@ -167,7 +213,14 @@ pub(crate) fn check_levels(
                 Some(c) => *c,
             };
         }
-        below = Some(walked);
+        if let Some(done) = below.replace(walked) {
+            starts[l + 1] = done.starts;
+        }
+    }
+    if leaf_level > 0
+        && let Some(root) = below.take()
+    {
+        starts[0] = root.starts;
     }
     if leaf_level == 0 {
         root_count = below
@@ -192,7 +245,17 @@ pub(crate) fn check_levels(
         && views.iter().all(Option::is_some)
         && leaf_level > 0
     {
-        check_canonical(f, bytes, &entries, &views)?;
+        let views: Vec<LevelView<'_>> = views.iter().flatten().copied().collect();
+        let check = |f: &mut Findings| crate::canonical2::check(f, &entries, &views, &starts);
+        if threads {
+            check(f)?;
+        } else {
+            // The same work on one thread.
+            match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+                Ok(pool) => pool.install(|| check(f))?,
+                Err(_) => check(f)?,
+            }
+        }
     }
     Ok(())
 }
@@ -381,7 +444,6 @@ fn walk_level(
     if complete
         && let Some(minimal) = v2::best_widths(&hist)
         && minimal != view.widths
-        && !starts.is_empty()
     {
         f.report(
             FormatError::new(
@@ -422,104 +484,9 @@ fn walk_level(
         }
     }
     Ok(Walked {
+        index: StartIndex::new(&starts, len),
         starts,
         counts,
         complete,
     })
-}
-
-/// E075 – E077: compares the file with the canonical encoding of its voxels.
-fn check_canonical(
-    f: &mut Findings,
-    bytes: &[u8],
-    entries: &[&SectionEntry],
-    views: &[Option<LevelView<'_>>],
-) -> Result<(), Stop> {
-    let Ok(dag2) = crate::v2file::Dag2::open(bytes) else {
-        return Ok(());
-    };
-    let Ok(v1) = crate::v2file::downgrade(&dag2) else {
-        return Ok(());
-    };
-    let Ok(dag1) = crate::Dag::open(&v1) else {
-        return Ok(());
-    };
-    let Ok(canonical) = v2::encode(&dag1) else {
-        return Ok(());
-    };
-    let leaf_level = views.len() - 1;
-    for l in (0..=leaf_level).rev() {
-        let file = views[l].as_ref().expect("every level usable");
-        let canon = canonical.levels[l].view();
-        if file.bytes == canon.bytes && file.widths == canon.widths {
-            continue;
-        }
-        let file_items = split_items(file);
-        let canon_items = split_items(&canon);
-        let first_diff = file_items
-            .iter()
-            .zip(&canon_items)
-            .position(|(a, b)| a.1 != b.1)
-            .unwrap_or(file_items.len().min(canon_items.len()));
-        let offset = entries[l].offset
-            + file_items
-                .get(first_diff)
-                .map_or(file.bytes.len() as u64, |i| i.0);
-        let (code, message) = if file_items.len() > canon_items.len() {
-            (
-                ErrorCode::DuplicateClass,
-                format!(
-                    "level {l} stores {} items where its subtrees form {} classes under reflection",
-                    file_items.len(),
-                    canon_items.len()
-                ),
-            )
-        } else {
-            let mut a: Vec<&[u8]> = file_items.iter().map(|i| i.1).collect();
-            let mut b: Vec<&[u8]> = canon_items.iter().map(|i| i.1).collect();
-            a.sort_unstable();
-            b.sort_unstable();
-            if a == b {
-                (
-                    ErrorCode::BadLevelOrder,
-                    format!("level {l} is not in the order of §23.7 (item {first_diff} differs)"),
-                )
-            } else {
-                (
-                    ErrorCode::NotCanonical,
-                    format!(
-                        "item {first_diff} of level {l} is not the canonical member of its class, or a reference does not carry the least reflection"
-                    ),
-                )
-            }
-        };
-        f.report(
-            FormatError::new(code, offset, message)
-                .at_level(l as u8)
-                .at_node(first_diff as u64),
-        )?;
-        break;
-    }
-    Ok(())
-}
-
-/// The items of a level: (offset in the level, bytes), records or leaves.
-fn split_items<'a>(view: &LevelView<'a>) -> Vec<(u64, &'a [u8])> {
-    let mut out = Vec::new();
-    if view.is_leaf {
-        for (i, m) in view.bytes.chunks_exact(8).enumerate() {
-            out.push((i as u64 * 8, m));
-        }
-        return out;
-    }
-    let mut at = 0u64;
-    while let Ok(node) = v2::decode_node(view.bytes, at, view.widths) {
-        let end = at + u64::from(node.size);
-        out.push((at, &view.bytes[at as usize..end as usize]));
-        at = end;
-        if at >= view.bytes.len() as u64 {
-            break;
-        }
-    }
-    out
 }

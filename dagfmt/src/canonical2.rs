@@ -1,0 +1,546 @@
+//! The canonical form of a 2.0 file (spec §23.6, §23.7; E075 – E077 of
+//! §23.10 step 4), checked on the file's own records.
+//!
+//! The check runs only on a file whose steps 1 – 3 found nothing, so every
+//! record decodes and every reference names an item of the level below.
+//!
+//! 1. **Bottom-up**, per level: each item's key (§23.6) from its record and
+//!    the ranks, symmetry groups and reflections to the canonical member of
+//!    its children, computed in parallel; the level's intrinsic ranks by a
+//!    parallel sort of the keys (equal keys: one class). Per item this keeps
+//!    its class's rank, the least reflection turning it into its class's
+//!    canonical member and its class's symmetry group (a bit set of the
+//!    reflections that fix it): 6 bytes an item.
+//! 2. **Top-down**, per level: what the canonical encoding stores there, as
+//!    (class, stored reflection) in stored order (§23.7), from the reference
+//!    counts of the classes of the level above (each class counted once, in
+//!    one of its items) and the canonical order of that level; each level is
+//!    compared with it item by item as it is made. An item is the canonical
+//!    one when it is of the same class, stored in the same reflection (up to
+//!    the class's symmetry), every shared reference carries the least
+//!    reflection of its coset and every child is named (shared or
+//!    sequential) as the canonical reference counts say.
+//! 3. The **deepest** level that differs gives the one finding: E075 when
+//!    it holds more items than classes (two items of one class), else E076
+//!    when an item is stored in another reflection than the canonical
+//!    encoding stores its class or a reference does not carry the least
+//!    reflection, else E077 (the same records in another order); at the
+//!    first item that differs.
+//!
+//! Where the levels below are canonical, a level's records equal the
+//! canonical encoding's byte for byte exactly when they equal it item by
+//! item in these terms, so the finding is the one a re-encoding of the
+//! file's voxels and a byte comparison would give (the conformance tests
+//! check this against that rebuild).
+
+use crate::symmetry::{NodeKey, least_form, reflect_leaf};
+use crate::v2::{self, Child, LevelView, norm, reflect_key};
+use rayon::prelude::*;
+
+use crate::error::{ErrorCode, FormatError};
+use crate::reader::SectionEntry;
+use crate::validate::{Findings, Stop};
+use crate::validate2::StartIndex;
+
+/// A child of a record as an item of the level below.
+#[derive(Clone, Copy)]
+struct ChildItem {
+    /// Index of the item in the level below.
+    item: u32,
+    /// The reference's reflection (0 for a sequential child).
+    reflection: u8,
+    /// Shared (named by a reference) or sequential.
+    shared: bool,
+}
+
+type Children = [Option<ChildItem>; 8];
+
+/// One level of the file as the check reads it.
+struct FileLevel<'a> {
+    view: &'a LevelView<'a>,
+    /// Record offsets in the level (interior); empty for the leaf level.
+    starts: &'a [u64],
+    /// `starts` indexed by offset.
+    index: StartIndex,
+    /// Items in the level.
+    len: usize,
+}
+
+impl FileLevel<'_> {
+    /// The offset of item `i` in its section.
+    fn item_offset(&self, i: usize) -> u64 {
+        if self.view.is_leaf {
+            i as u64 * 8
+        } else {
+            self.starts[i]
+        }
+    }
+
+    /// The leaf mask of item `i` (leaf level).
+    fn mask(&self, i: usize) -> u64 {
+        let b = &self.view.bytes[i * 8..i * 8 + 8];
+        u64::from_le_bytes(b.try_into().expect("8 bytes"))
+    }
+
+    /// The item index that `target` names in this level.
+    fn item_of(&self, target: u64) -> Option<u32> {
+        let i = if self.view.is_leaf {
+            usize::try_from(target).ok().filter(|&i| i < self.len)?
+        } else {
+            self.index.item(target)?
+        };
+        u32::try_from(i).ok()
+    }
+
+    /// Record `i`'s header and its children as items of `below`.
+    fn record(&self, i: usize, below: &FileLevel<'_>) -> Option<(u32, Children)> {
+        let node = v2::decode_node(self.view.bytes, self.starts[i], self.view.widths).ok()?;
+        let mut out = [None; 8];
+        let mut base_item = None;
+        for (slot, child) in node.children.iter().enumerate() {
+            out[slot] = match *child {
+                None => None,
+                Some(Child::Shared { target, reflection }) => Some(ChildItem {
+                    item: below.item_of(target)?,
+                    reflection,
+                    shared: true,
+                }),
+                Some(Child::Sequential { base, index }) => {
+                    let first = match base_item {
+                        Some(b) => b,
+                        None => *base_item.insert(below.item_of(base)?),
+                    };
+                    let item = first.checked_add(index)?;
+                    if item as usize >= below.len {
+                        return None;
+                    }
+                    Some(ChildItem {
+                        item,
+                        reflection: 0,
+                        shared: false,
+                    })
+                }
+            };
+        }
+        Some((node.header, out))
+    }
+}
+
+/// What the bottom-up pass knows of one item, together so that following a
+/// reference to it costs one cache miss.
+#[derive(Clone, Copy, Default)]
+struct ItemInfo {
+    /// The intrinsic rank of its class.
+    rank: u32,
+    /// The least reflection turning it into its class's canonical member
+    /// (the member attains the key).
+    to_canonical: u8,
+    /// Its class's symmetry group, bit s set when reflection s maps the
+    /// class onto itself.
+    group: u8,
+}
+
+/// What the bottom-up pass knows of a level's items and classes.
+struct Ranked {
+    /// Per item.
+    items: Vec<ItemInfo>,
+    /// Per class (by rank): its symmetry group.
+    group: Vec<u8>,
+    /// Per class (by rank): its first item.
+    first: Vec<u32>,
+}
+
+impl Ranked {
+    /// Ranks sorted `(key, item)` pairs: equal keys are one class.
+    /// `items` holds each item's reflection and group; its ranks are set here.
+    fn from_sorted<K: PartialEq>(sorted: &[(K, u32)], mut items: Vec<ItemInfo>) -> Ranked {
+        let mut group = Vec::new();
+        let mut first = Vec::new();
+        for (i, (key, item)) in sorted.iter().enumerate() {
+            if i == 0 || sorted[i - 1].0 != *key {
+                group.push(items[*item as usize].group);
+                first.push(*item);
+            }
+            items[*item as usize].rank = (first.len() - 1) as u32;
+        }
+        Ranked {
+            items,
+            group,
+            first,
+        }
+    }
+
+    /// The slot value of §23.6 for a child stored as item `c` and named
+    /// with reflection `r`: `1 + 8·rank + t`, t the least reflection turning
+    /// the class's canonical member into the child.
+    #[inline]
+    fn slot(&self, c: ChildItem) -> u64 {
+        let info = self.items[c.item as usize];
+        let t = norm(info.to_canonical ^ c.reflection, info.group);
+        1 + (u64::from(info.rank) << 3) + u64::from(t)
+    }
+}
+
+/// Ranks the leaf level: key = the least of the 8 reflected masks.
+fn rank_leaves(level: &FileLevel<'_>) -> Ranked {
+    let per_leaf: Vec<(u64, u8, u8)> = (0..level.len)
+        .into_par_iter()
+        .map(|i| {
+            let m = level.mask(i);
+            let (mut key, mut to_canonical, mut group) = (u64::MAX, 0u8, 0u8);
+            for r in 0..8u8 {
+                let x = reflect_leaf(m, r);
+                if x < key {
+                    key = x;
+                    to_canonical = r;
+                }
+                if x == m {
+                    group |= 1 << r;
+                }
+            }
+            (key, to_canonical, group)
+        })
+        .collect();
+    let mut sorted: Vec<(u64, u32)> = per_leaf
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| (p.0, i as u32))
+        .collect();
+    sorted.par_sort_unstable();
+    let items = per_leaf
+        .iter()
+        .map(|p| ItemInfo {
+            rank: 0,
+            to_canonical: p.1,
+            group: p.2,
+        })
+        .collect();
+    Ranked::from_sorted(&sorted, items)
+}
+
+/// The key of record `i` as stored (reflection 0): its slots in terms of
+/// its children's classes, and its attribute.
+fn stored_key(header: u32, children: &Children, below: &Ranked) -> NodeKey {
+    let mut key = NodeKey {
+        slots: [0; 8],
+        attribute: header >> 8,
+    };
+    for (p, c) in children.iter().enumerate() {
+        if let Some(c) = c {
+            key.slots[p] = below.slot(*c);
+        }
+    }
+    key
+}
+
+/// The least of the 8 reflected forms of `key` (§23.6): the form, the least
+/// reflection reaching it and the class's symmetry group.
+fn least_key(key: &NodeKey, below_group: &[u8]) -> (NodeKey, u8, u8) {
+    let (best, ties) = least_form(8, |r, j| {
+        let s = key.slots[usize::from(j ^ r)];
+        if s == 0 {
+            return 0;
+        }
+        let rank = (s - 1) >> 3;
+        let t = norm(((s - 1) & 7) as u8 ^ r, below_group[rank as usize]);
+        1 + (rank << 3) + u64::from(t)
+    });
+    let mut group = 0u8;
+    for r in 0..8u8 {
+        if ties >> r & 1 != 0 {
+            group |= 1 << (r ^ best);
+        }
+    }
+    (reflect_key(key, best, below_group), best, group)
+}
+
+/// Ranks interior level `l` (the root, l = 0, is its own canonical member:
+/// §23.6). `None` when a record does not decode (steps 1 – 3 rule it out).
+fn rank_nodes(
+    level: &FileLevel<'_>,
+    below: &FileLevel<'_>,
+    below_ranked: &Ranked,
+    is_root: bool,
+) -> Option<Ranked> {
+    let keyed: Vec<(NodeKey, u8, u8)> = (0..level.len)
+        .into_par_iter()
+        .map(|i| {
+            let (header, children) = level.record(i, below)?;
+            let key = stored_key(header, &children, below_ranked);
+            Some(if is_root {
+                (key, 0, 1)
+            } else {
+                least_key(&key, &below_ranked.group)
+            })
+        })
+        .collect::<Option<_>>()?;
+    let items = keyed
+        .iter()
+        .map(|k| ItemInfo {
+            rank: 0,
+            to_canonical: k.1,
+            group: k.2,
+        })
+        .collect();
+    let mut sorted: Vec<(NodeKey, u32)> = keyed
+        .into_par_iter()
+        .enumerate()
+        .map(|(i, k)| (k.0, i as u32))
+        .collect();
+    sorted.par_sort_unstable();
+    Some(Ranked::from_sorted(&sorted, items))
+}
+
+/// The canonical member's key of class `rank` of interior level `l`.
+fn class_key(
+    level: &FileLevel<'_>,
+    ranked: &Ranked,
+    rank: u32,
+    below: &FileLevel<'_>,
+    below_ranked: &Ranked,
+) -> Option<NodeKey> {
+    let item = ranked.first[rank as usize];
+    let (header, children) = level.record(item as usize, below)?;
+    let key = stored_key(header, &children, below_ranked);
+    Some(reflect_key(
+        &key,
+        ranked.items[item as usize].to_canonical,
+        &below_ranked.group,
+    ))
+}
+
+/// Whether reflection `t` maps a class of symmetry group `group` onto itself.
+fn fixes(group: u8, t: u8) -> bool {
+    group >> t & 1 != 0
+}
+
+/// How a level differs from the canonical one.
+struct Difference {
+    code: ErrorCode,
+    /// First item that differs.
+    item: usize,
+    canonical_items: usize,
+}
+
+/// Compares level `level` with `canonical` ((class, stored reflection) in
+/// stored order). `counts_below`: the canonical reference counts of the
+/// classes of the level below (interior levels).
+fn compare(
+    level: &FileLevel<'_>,
+    ranked: &Ranked,
+    canonical: &[(u32, u8)],
+    below: Option<(&FileLevel<'_>, &Ranked, &[u32])>,
+) -> Option<Difference> {
+    // Whether item i's references carry least reflections, and (`counts`)
+    // whether it names each child as the canonical counts say.
+    let references_ok = |i: usize, check_naming: bool| -> bool {
+        let Some((below, below_ranked, counts)) = below else {
+            return true;
+        };
+        let Some((_, children)) = level.record(i, below) else {
+            return false;
+        };
+        children.iter().flatten().all(|c| {
+            let info = below_ranked.items[c.item as usize];
+            let least = !c.shared || norm(c.reflection, info.group) == c.reflection;
+            let named = !check_naming || c.shared == (counts[info.rank as usize] > 1);
+            least && named
+        })
+    };
+    let same = |i: usize| -> bool {
+        let (rank, stored) = canonical[i];
+        let info = ranked.items[i];
+        info.rank == rank && fixes(info.group, info.to_canonical ^ stored) && references_ok(i, true)
+    };
+    let common = level.len.min(canonical.len());
+    let first = (0..common).into_par_iter().position_first(|i| !same(i));
+    if first.is_none() && level.len == canonical.len() {
+        return None;
+    }
+    let item = first.unwrap_or(common);
+    let code = if level.len > canonical.len() {
+        ErrorCode::DuplicateClass
+    } else {
+        let mut stored_of_class = vec![0u8; ranked.group.len()];
+        for &(rank, stored) in canonical {
+            stored_of_class[rank as usize] = stored;
+        }
+        let misstored = (0..level.len).into_par_iter().any(|i| {
+            let info = ranked.items[i];
+            !fixes(
+                info.group,
+                info.to_canonical ^ stored_of_class[info.rank as usize],
+            ) || !references_ok(i, false)
+        });
+        if misstored {
+            ErrorCode::NotCanonical
+        } else {
+            ErrorCode::BadLevelOrder
+        }
+    };
+    Some(Difference {
+        code,
+        item,
+        canonical_items: canonical.len(),
+    })
+}
+
+/// The canonical reference counts of the classes of level `l + 1`: each
+/// class of level `l` counted once, every reference of it.
+fn reference_counts(
+    level: &FileLevel<'_>,
+    ranked: &Ranked,
+    below: &FileLevel<'_>,
+    below_ranked: &Ranked,
+) -> Option<Vec<u32>> {
+    let mut counts = vec![0u32; below_ranked.first.len()];
+    for &item in &ranked.first {
+        let (_, children) = level.record(item as usize, below)?;
+        for c in children.iter().flatten() {
+            let r = below_ranked.items[c.item as usize].rank as usize;
+            counts[r] = counts[r].saturating_add(1);
+        }
+    }
+    Some(counts)
+}
+
+/// The canonical order of level `l + 1` (§23.7) from that of level `l`.
+fn next_canonical(
+    level: &FileLevel<'_>,
+    ranked: &Ranked,
+    canonical: &[(u32, u8)],
+    below: &FileLevel<'_>,
+    below_ranked: &Ranked,
+    counts: &[u32],
+) -> Option<Vec<(u32, u8)>> {
+    let mut next: Vec<(u32, u8)> = (0..counts.len() as u32)
+        .filter(|&c| counts[c as usize] > 1)
+        .map(|c| (c, 0))
+        .collect();
+    next.par_sort_unstable_by(|a, b| {
+        counts[b.0 as usize]
+            .cmp(&counts[a.0 as usize])
+            .then(a.0.cmp(&b.0))
+    });
+    for &(rank, stored) in canonical {
+        let key = class_key(level, ranked, rank, below, below_ranked)?;
+        let key = reflect_key(&key, stored, &below_ranked.group);
+        for &s in &key.slots {
+            if s != 0 {
+                let child = ((s - 1) >> 3) as u32;
+                if counts[child as usize] == 1 {
+                    next.push((child, ((s - 1) & 7) as u8));
+                }
+            }
+        }
+    }
+    Some(next)
+}
+
+/// Step 4 of §23.10 on a file whose steps 1 – 3 found nothing: reports at
+/// most one of E075 – E077. `starts[l]`: the record offsets of node level
+/// `l`, as the walk found them.
+pub(crate) fn check(
+    f: &mut Findings,
+    entries: &[&SectionEntry],
+    views: &[LevelView<'_>],
+    starts: &[Vec<u64>],
+) -> Result<(), Stop> {
+    let leaf_level = views.len() - 1;
+    let levels: Vec<FileLevel<'_>> = views
+        .iter()
+        .enumerate()
+        .map(|(l, view)| FileLevel {
+            view,
+            starts: if view.is_leaf { &[] } else { &starts[l] },
+            index: if view.is_leaf {
+                StartIndex::default()
+            } else {
+                StartIndex::new(&starts[l], view.bytes.len() as u64)
+            },
+            len: if view.is_leaf {
+                view.bytes.len() / 8
+            } else {
+                starts[l].len()
+            },
+        })
+        .collect();
+    // Item indices are u32 (§16.1 allows more leaves than that only in
+    // levels no build makes); a larger level is not checked.
+    if levels.iter().any(|l| u32::try_from(l.len).is_err()) || levels[0].len == 0 {
+        return Ok(());
+    }
+    let mut ranked: Vec<Option<Ranked>> = (0..=leaf_level).map(|_| None).collect();
+    ranked[leaf_level] = Some(rank_leaves(&levels[leaf_level]));
+    for l in (0..leaf_level).rev() {
+        let below = ranked[l + 1].as_ref().expect("ranked");
+        let Some(r) = rank_nodes(&levels[l], &levels[l + 1], below, l == 0) else {
+            return Ok(());
+        };
+        ranked[l] = Some(r);
+    }
+    let ranked: Vec<Ranked> = ranked.into_iter().map(|r| r.expect("ranked")).collect();
+
+    let mut deepest: Option<(usize, Difference)> = None;
+    let mut canonical: Vec<(u32, u8)> = vec![(0, 0)];
+    for l in 0..=leaf_level {
+        if l == leaf_level {
+            if let Some(d) = compare(&levels[l], &ranked[l], &canonical, None) {
+                deepest = Some((l, d));
+            }
+            break;
+        }
+        let (level, below) = (&levels[l], &levels[l + 1]);
+        let Some(counts) = reference_counts(level, &ranked[l], below, &ranked[l + 1]) else {
+            return Ok(());
+        };
+        if let Some(d) = compare(
+            level,
+            &ranked[l],
+            &canonical,
+            Some((below, &ranked[l + 1], &counts)),
+        ) {
+            deepest = Some((l, d));
+        }
+        let Some(next) = next_canonical(
+            level,
+            &ranked[l],
+            &canonical,
+            below,
+            &ranked[l + 1],
+            &counts,
+        ) else {
+            return Ok(());
+        };
+        canonical = next;
+    }
+    let Some((l, d)) = deepest else {
+        return Ok(());
+    };
+    let level = &levels[l];
+    let offset = entries[l].offset
+        + if d.item < level.len {
+            level.item_offset(d.item)
+        } else {
+            level.view.bytes.len() as u64
+        };
+    let message = match d.code {
+        ErrorCode::DuplicateClass => format!(
+            "level {l} stores {} items where its subtrees form {} classes under reflection",
+            level.len, d.canonical_items
+        ),
+        ErrorCode::BadLevelOrder => format!(
+            "level {l} is not in the order of §23.7 (item {} differs)",
+            d.item
+        ),
+        _ => format!(
+            "item {} of level {l} is not stored as the canonical encoding stores its class, or a reference does not carry the least reflection",
+            d.item
+        ),
+    };
+    f.report(
+        FormatError::new(d.code, offset, message)
+            .at_level(l as u8)
+            .at_node(d.item as u64),
+    )
+}

@@ -1718,6 +1718,437 @@ impl Merger<'_> {
 }
 
 // ---------------------------------------------------------------------------
+// The merge in memory.
+
+/// Joins runs like [`RunMerge`], but in memory, without temporary files: one
+/// hash table of distinct records per level, filled run after run. Each run
+/// gives its records bottom-up (leaves, then each level up to the split
+/// level, children as the indices [`MemoryMerge::leaf`] and
+/// [`MemoryMerge::node`] returned for them), then its roots. A record gets
+/// the next index of its level the first time it is seen, so the indices
+/// are the first-seen order of the runs in order, each in its own order:
+/// the order of one in-memory build of all their voxels (as in the
+/// out-of-core merge), and the file is that build's, byte for byte.
+///
+/// It holds every distinct record of the levels `split ..= D − 2` as words
+/// (header, then child indices) and a hash-table slot per record (its index
+/// and offset, so that a lookup reads the table and then the record: no
+/// third access); [`MemoryMerge::estimate`] bounds that from the runs' sizes, so a
+/// caller can choose it when it fits its memory and [`RunMerge`] otherwise.
+pub struct MemoryMerge {
+    depth: u8,
+    attributes: AttributeKind,
+    split: u8,
+    leaves: Vec<u64>,
+    leaf_table: HashTable<u32>,
+    /// Levels `split .. D − 2`, index `level − split`.
+    nodes: Vec<NodeLevel>,
+    /// Per root: Morton code of its level-`split` cell, index, voxel count.
+    roots: Vec<(u64, u32, u64)>,
+}
+
+impl std::fmt::Debug for MemoryMerge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MemoryMerge")
+            .field("depth", &self.depth)
+            .field("split", &self.split)
+            .field("leaves", &self.leaves.len())
+            .field("roots", &self.roots.len())
+            .finish_non_exhaustive()
+    }
+}
+
+/// The distinct records of one interior level, in first-seen order.
+#[derive(Default)]
+struct NodeLevel {
+    /// Each record's header word, then its children's indices in the level
+    /// below.
+    words: Vec<u32>,
+    /// Records so far.
+    records: u32,
+    /// Per record: its index (high half) and its offset in `words` (low half).
+    table: HashTable<u64>,
+}
+
+/// Bytes of a hash-table slot per expected record, at the table's worst
+/// load (a power of two of buckets at 7/8 load: up to 16/7 slots of 8 bytes
+/// and a control byte each).
+const TABLE_BYTES_PER_RECORD: u64 = 21;
+
+impl MemoryMerge {
+    /// A merge of depth-`depth` runs split at level `split` (1 ..= D − 2).
+    pub fn new(depth: u8, attributes: AttributeKind, split: u8) -> Result<Self, ConvertError> {
+        if depth < 3 || !(1..=depth - 2).contains(&split) {
+            return Err(ConvertError::Usage(format!(
+                "split level {split} is outside 1..={} for depth {depth}",
+                depth.saturating_sub(2)
+            )));
+        }
+        Ok(MemoryMerge {
+            depth,
+            attributes,
+            split,
+            leaves: Vec::new(),
+            leaf_table: HashTable::new(),
+            nodes: (split..depth - 2).map(|_| NodeLevel::default()).collect(),
+            roots: Vec::new(),
+        })
+    }
+
+    /// An upper bound of the bytes the merge holds for runs whose level
+    /// `level` has `records` records with `words` words of content (header
+    /// and children) in all, per level.
+    pub fn estimate(levels: impl IntoIterator<Item = (u64, u64)>) -> u64 {
+        levels
+            .into_iter()
+            .map(|(records, words)| 4 * words + (4 + TABLE_BYTES_PER_RECORD) * records)
+            .sum()
+    }
+
+    /// Makes room for `records` more records of `level` with `words` words
+    /// of content (upper bounds: the runs' records before deduplication), so
+    /// that the tables do not grow (and briefly hold twice their size, and
+    /// rehash) while the runs are given.
+    pub fn reserve(&mut self, level: u8, records: u64, words: u64) {
+        let records = records as usize;
+        if level == self.depth - 2 {
+            self.leaves.reserve(records);
+            self.leaf_table
+                .reserve(records, |&i| leaf_hash(self.leaves[i as usize]));
+        } else if let Some(n) = level
+            .checked_sub(self.split)
+            .and_then(|i| self.nodes.get_mut(usize::from(i)))
+        {
+            n.words.reserve(words as usize);
+            let NodeLevel { words, table, .. } = n;
+            table.reserve(records, |&e| node_hash(words, e as u32));
+        }
+    }
+
+    /// The index of leaf mask `mask`: the next one when it is new.
+    #[inline]
+    pub fn leaf(&mut self, mask: u64) -> Result<u32, ConvertError> {
+        let leaves = &mut self.leaves;
+        let entry = self.leaf_table.entry(
+            leaf_hash(mask),
+            |&i| leaves[i as usize] == mask,
+            |&i| leaf_hash(leaves[i as usize]),
+        );
+        Ok(match entry {
+            hashbrown::hash_table::Entry::Occupied(e) => *e.get(),
+            hashbrown::hash_table::Entry::Vacant(e) => {
+                let i = u32::try_from(leaves.len())
+                    .ok()
+                    .filter(|&i| u64::from(i) < MAX_LEAF_COUNT)
+                    .ok_or_else(|| {
+                        build_error(BuildError::TooLarge {
+                            what: format!("more than {MAX_LEAF_COUNT} leaves"),
+                        })
+                    })?;
+                leaves.push(mask);
+                e.insert(i);
+                i
+            }
+        })
+    }
+
+    /// The index of the record of interior `level` (`split .. D − 2`) with
+    /// header word `header` and children `children` (indices of the level
+    /// below): the next one when it is new.
+    #[inline]
+    pub fn node(&mut self, level: u8, header: u32, children: &[u32]) -> Result<u32, ConvertError> {
+        let leaf = self.depth - 2;
+        let below = if level + 1 == leaf {
+            self.leaves.len()
+        } else {
+            level
+                .checked_sub(self.split)
+                .and_then(|i| self.nodes.get(usize::from(i) + 1))
+                .map_or(0, |n| n.records as usize)
+        };
+        let fits = (self.split..leaf).contains(&level)
+            && (header & 0xFF).count_ones() as usize == children.len()
+            && children.iter().all(|&c| (c as usize) < below);
+        if !fits {
+            return Err(ConvertError::Input(format!(
+                "a record of level {level} with header {header:#x} and children {children:?} does not fit levels {}..{leaf} ({below} records below)",
+                self.split
+            )));
+        }
+        let n = &mut self.nodes[usize::from(level - self.split)];
+        let mut rec = [0u32; 9];
+        rec[0] = header;
+        rec[1..=children.len()].copy_from_slice(children);
+        let rec = &rec[..=children.len()];
+        let NodeLevel {
+            words,
+            records,
+            table,
+        } = n;
+        let entry = table.entry(
+            table_hash(hash_words(rec)),
+            |&e| node_content(words, e as u32) == rec,
+            |&e| node_hash(words, e as u32),
+        );
+        Ok(match entry {
+            hashbrown::hash_table::Entry::Occupied(e) => (*e.get() >> 32) as u32,
+            hashbrown::hash_table::Entry::Vacant(e) => {
+                let too_large = || {
+                    build_error(BuildError::TooLarge {
+                        what: format!("level {level} has more than 2^32 words of records"),
+                    })
+                };
+                let i = *records;
+                let at = u32::try_from(words.len()).map_err(|_| too_large())?;
+                u32::try_from(words.len() + rec.len()).map_err(|_| too_large())?;
+                *records = i.checked_add(1).ok_or_else(too_large)?;
+                words.extend_from_slice(rec);
+                e.insert(u64::from(i) << 32 | u64::from(at));
+                i
+            }
+        })
+    }
+
+    /// Adds a root: the Morton code of its level-`split` cell (strictly
+    /// increasing over all runs), the index of its record (or leaf) and its
+    /// voxel count.
+    pub fn push_root(&mut self, code: u64, index: u32, count: u64) -> Result<(), ConvertError> {
+        let records = match self.nodes.first() {
+            Some(n) => n.records as usize,
+            None => self.leaves.len(),
+        };
+        if self.roots.last().is_some_and(|r| r.0 >= code) || index as usize >= records {
+            return Err(ConvertError::Input(format!(
+                "subtree {code} (index {index}) is out of Morton order or refers to no record"
+            )));
+        }
+        self.roots.push((code, index, count));
+        Ok(())
+    }
+
+    /// Lays the levels out: pointer widths and offsets from the leaves up,
+    /// then the levels above the split from the roots.
+    pub fn finish(self) -> Result<FinishedDag, ConvertError> {
+        let t = std::time::Instant::now();
+        if self.roots.is_empty() {
+            let built = DagBuilder::new(self.depth, self.attributes)
+                .and_then(DagBuilder::finish)
+                .map_err(build_error)?;
+            return Ok(FinishedDag {
+                inner: Inner::InCore(built),
+                cells: Vec::new(),
+                report: SpillReport::default(),
+            });
+        }
+        let MemoryMerge {
+            depth,
+            attributes,
+            split,
+            leaves,
+            leaf_table,
+            nodes,
+            roots,
+        } = self;
+        drop(leaf_table);
+        let leaf = depth - 2;
+        let leaf_crc = leaves.chunks(1 << 13).fold(0, |crc, chunk| {
+            let bytes: Vec<u8> = chunk.iter().flat_map(|m| m.to_le_bytes()).collect();
+            crc32c::crc32c_append(crc, &bytes)
+        });
+        let leaf_info = SectionInfo::leaf_level(leaf, leaves.len() as u64, leaf_crc);
+        let mut below_units = leaves.len() as u64;
+        let mut levels: Vec<MemoryLevel> = vec![MemoryLevel::Leaves {
+            masks: leaves,
+            info: leaf_info,
+        }];
+        for (i, n) in nodes.into_iter().enumerate().rev() {
+            let level = split + i as u8;
+            let NodeLevel {
+                words,
+                records,
+                table,
+            } = n;
+            drop(table);
+            let width = layout::minimal_pointer_width(below_units).ok_or_else(|| {
+                build_error(BuildError::TooLarge {
+                    what: format!(
+                        "level {} has {below_units} units, more than 4-byte pointers address",
+                        level + 1
+                    ),
+                })
+            })?;
+            // Each record's offset in units (words): its start, once the
+            // sizes of the records before it at this width are known.
+            let mut units = vec![0u32; records as usize];
+            let mut at = 0u64;
+            let mut w = 0usize;
+            for u in &mut units {
+                let children = (words[w] & 0xFF).count_ones();
+                *u = u32::try_from(at).map_err(|_| {
+                    build_error(BuildError::TooLarge {
+                        what: format!("level {level} has more than 2^32 units"),
+                    })
+                })?;
+                at += layout::node_record_size(children, width) / 4;
+                w += 1 + children as usize;
+            }
+            if at * 4 > MAX_NODE_LEVEL_BYTES {
+                return Err(build_error(BuildError::TooLarge {
+                    what: format!("level {level} exceeds {MAX_NODE_LEVEL_BYTES} bytes"),
+                }));
+            }
+            let count = units.len() as u64;
+            let mut this = MemoryLevel::Nodes {
+                words,
+                units,
+                width,
+                info: SectionInfo::node_level(level, width, at * 4, count, 0),
+            };
+            let below = levels.last().expect("the level below");
+            let mut crc = 0;
+            this.emit(below, &mut |bytes| {
+                crc = crc32c::crc32c_append(crc, bytes);
+                Ok(())
+            })
+            .expect("a sink that cannot fail");
+            if let MemoryLevel::Nodes { info, .. } = &mut this {
+                info.crc = crc;
+            }
+            below_units = at;
+            levels.push(this);
+        }
+        levels.reverse();
+        let mut upper = UpperBuilder::new(depth, attributes, split).map_err(build_error)?;
+        for &(code, index, count) in &roots {
+            upper
+                .push_subtree(code, levels[0].unit(index), count)
+                .map_err(build_error)?;
+        }
+        let upper = upper.finish(below_units).map_err(build_error)?;
+        Ok(FinishedDag {
+            inner: Inner::Memory(MemoryDag {
+                upper,
+                levels,
+                split,
+            }),
+            cells: Vec::new(),
+            report: SpillReport {
+                runs: 0,
+                max_buckets: 0,
+                merge_seconds: t.elapsed().as_secs_f64(),
+            },
+        })
+    }
+}
+
+#[inline]
+fn leaf_hash(mask: u64) -> u64 {
+    table_hash(mask ^ 0x9e37_79b9_7f4a_7c15)
+}
+
+#[inline]
+fn node_content(words: &[u32], start: u32) -> &[u32] {
+    let at = start as usize;
+    &words[at..at + 1 + (words[at] & 0xFF).count_ones() as usize]
+}
+
+#[inline]
+fn node_hash(words: &[u32], start: u32) -> u64 {
+    table_hash(hash_words(node_content(words, start)))
+}
+
+/// A level merged in memory, ready to be encoded.
+#[derive(Debug)]
+enum MemoryLevel {
+    Leaves {
+        masks: Vec<u64>,
+        info: SectionInfo,
+    },
+    Nodes {
+        /// Header, then child indices, per record.
+        words: Vec<u32>,
+        /// Each record's offset in the level, in words.
+        units: Vec<u32>,
+        width: u8,
+        info: SectionInfo,
+    },
+}
+
+impl MemoryLevel {
+    /// The pointer to the record or leaf of index `index`.
+    #[inline]
+    fn unit(&self, index: u32) -> u32 {
+        match self {
+            MemoryLevel::Leaves { .. } => index,
+            MemoryLevel::Nodes { units, .. } => units[index as usize],
+        }
+    }
+
+    fn info(&self) -> SectionInfo {
+        match self {
+            MemoryLevel::Leaves { info, .. } | MemoryLevel::Nodes { info, .. } => *info,
+        }
+    }
+
+    /// Encodes the level in chunks; `below` is the level below (its
+    /// pointers), unused for the leaves.
+    fn emit(
+        &self,
+        below: &MemoryLevel,
+        sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+    ) -> io::Result<()> {
+        const CHUNK: usize = 1 << 16;
+        let mut out: Vec<u8> = Vec::with_capacity(CHUNK + 64);
+        match self {
+            MemoryLevel::Leaves { masks, .. } => {
+                for chunk in masks.chunks(CHUNK / 8) {
+                    out.clear();
+                    for m in chunk {
+                        out.extend_from_slice(&m.to_le_bytes());
+                    }
+                    sink(&out)?;
+                }
+            }
+            MemoryLevel::Nodes { words, width, .. } => {
+                let mut pointers = [0u32; 8];
+                let mut at = 0usize;
+                while at < words.len() {
+                    let header = words[at];
+                    let c = (header & 0xFF).count_ones() as usize;
+                    for (p, &child) in pointers.iter_mut().zip(&words[at + 1..at + 1 + c]) {
+                        *p = below.unit(child);
+                    }
+                    layout::encode_node_record(
+                        header as u8,
+                        header >> layout::CHILD_MASK_BITS,
+                        &pointers[..c],
+                        *width,
+                        &mut out,
+                    );
+                    at += 1 + c;
+                    if out.len() >= CHUNK {
+                        sink(&out)?;
+                        out.clear();
+                    }
+                }
+                sink(&out)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Levels merged in memory: the upper levels, and levels `split ..= leaf`
+/// as distinct records, encoded as they are written.
+#[derive(Debug)]
+pub struct MemoryDag {
+    upper: UpperLevels,
+    /// Levels `split ..= leaf`.
+    levels: Vec<MemoryLevel>,
+    split: u8,
+}
+
+// ---------------------------------------------------------------------------
 // The result.
 
 /// Levels built out of core: the upper levels in memory, the others in
@@ -1734,6 +2165,7 @@ pub struct ExternalDag {
 enum Inner {
     InCore(BuiltDag),
     External(ExternalDag),
+    Memory(MemoryDag),
 }
 
 /// A finished DAG, in memory or in temporary files, ready to be written.
@@ -1751,6 +2183,7 @@ impl FinishedDag {
         match &self.inner {
             Inner::InCore(b) => b.voxel_count(),
             Inner::External(e) => e.upper.voxel_count(),
+            Inner::Memory(m) => m.upper.voxel_count(),
         }
     }
 
@@ -1768,6 +2201,11 @@ impl FinishedDag {
                 s.extend(e.lower.iter().map(|f| f.info));
                 s
             }
+            Inner::Memory(m) => {
+                let mut s = m.upper.sections();
+                s.extend(m.levels.iter().map(MemoryLevel::info));
+                s
+            }
         }
     }
 
@@ -1782,6 +2220,13 @@ impl FinishedDag {
             Inner::External(e) => match index.checked_sub(usize::from(e.split)) {
                 None => e.upper.emit_section(index, sink),
                 Some(i) => e.lower[i].emit(sink),
+            },
+            Inner::Memory(m) => match index.checked_sub(usize::from(m.split)) {
+                None => m.upper.emit_section(index, sink),
+                Some(i) => {
+                    let level = &m.levels[i];
+                    level.emit(m.levels.get(i + 1).unwrap_or(level), sink)
+                }
             },
         }
     }

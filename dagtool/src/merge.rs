@@ -6,12 +6,20 @@
 //! E090–E094); the parts must agree on depth, root cube, attributes, region
 //! level and colours (E095), must not overlap (E096) and must cover one
 //! contiguous Morton range of cells (E097). Each part is then one *run* of
-//! the out-of-core level merge ([`crate::external::RunMerge`]): a part is
-//! the canonical DAG of a Morton range of complete subtrees, its records in
-//! first-seen order, which is what a spilled run of one conversion holds.
-//! The merge therefore deduplicates exactly, works within a memory budget,
-//! and its result does not depend on how the parts were grouped: merging is
-//! associative, and parts of parts are parts.
+//! the level merge: a part is the canonical DAG of a Morton range of
+//! complete subtrees, its records in first-seen order, which is what a
+//! spilled run of one conversion holds. When the parts' records fit the
+//! memory limit they are deduplicated in one hash table per level, part
+//! after part ([`crate::external::MemoryMerge`]); otherwise by the
+//! out-of-core level merge ([`crate::external::RunMerge`]), which works
+//! within any budget through temporary files. Both deduplicate exactly and
+//! give the same bytes, and the result does not depend on how the parts were
+//! grouped: merging is associative, and parts of parts are parts.
+//!
+//! The parts are validated in parallel (one thread per core), and each
+//! part's file is mapped only while it is validated and while it is read
+//! into the merge, so the merge's resident memory is its tables, not the
+//! parts.
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};
@@ -24,7 +32,7 @@ use dagfmt::validate::{ValidateOptions, validate_with};
 use dagfmt::{AnyDag, Dag, FormatError};
 
 use crate::error::ConvertError;
-use crate::external::{ColourSink, MIN_MERGE_BUDGET, RunMerge, Scratch};
+use crate::external::{ColourSink, MIN_MERGE_BUDGET, MemoryMerge, RunMerge, Scratch};
 use crate::output::check_output;
 use crate::region::{ColourMode, Placement, Region, check_part, rules};
 use crate::sysinfo::{current_rss, total_memory};
@@ -38,7 +46,8 @@ pub struct MergeOptions {
     pub force: bool,
     /// Directory of the temporary files (`None`: the output's directory).
     pub tmp_dir: Option<PathBuf>,
-    /// Testing: the number of buckets of every level's merge.
+    /// Testing: the number of buckets of every level's merge (forces the
+    /// out-of-core merge).
     pub buckets: Option<u32>,
     /// The major format version of the whole-volume file: 2 (the default,
     /// as `dagtool convert`'s) or 1. A merge that does not cover the whole
@@ -87,6 +96,8 @@ pub struct MergeSummary {
     pub max_buckets: u64,
     /// Bytes written to temporary files.
     pub temp_bytes: u64,
+    /// Whether the levels were merged in memory (else out of core).
+    pub in_memory: bool,
     /// Seconds spent validating the parts.
     pub validate_seconds: f64,
     /// Total seconds.
@@ -101,7 +112,7 @@ impl MergeSummary {
              voxels:   {}\n\
              nodes:    {:?} per level\n\
              output:   {} ({} bytes, {}, format {}.0)\n\
-             time:     {:.2} s ({:.2} s validating {} bytes of parts; {} temporary bytes, up to {} buckets per level)\n",
+             time:     {:.2} s ({:.2} s validating {} bytes of parts; {}, {} temporary bytes, up to {} buckets per level)\n",
             self.parts,
             if self.parts == 1 { "" } else { "s" },
             self.region_level,
@@ -122,17 +133,44 @@ impl MergeSummary {
             self.total_seconds,
             self.validate_seconds,
             self.input_bytes,
+            if self.in_memory {
+                "in memory"
+            } else {
+                "out of core"
+            },
             self.temp_bytes,
             self.max_buckets,
         )
     }
 }
 
-/// A part opened and checked.
+/// A part checked: its placement, and what the merge needs to size itself.
+/// Its file is mapped again when it is read into the merge.
 struct Part {
     path: PathBuf,
-    file: MappedFile,
     placement: Placement,
+    header: dagfmt::reader::Header,
+    bytes: u64,
+    /// Per level, root first: records, and an upper bound of the words of
+    /// their content (header and children).
+    levels: Vec<(u64, u64)>,
+}
+
+impl Part {
+    /// Maps the part again to read it; refuses a file that changed since it
+    /// was validated.
+    fn map(&self) -> Result<MappedFile, ConvertError> {
+        let file = MappedFile::open(&self.path).map_err(|e| {
+            ConvertError::io(format!("cannot read part {}", self.path.display()), e)
+        })?;
+        if file.bytes().len() as u64 != self.bytes {
+            return Err(ConvertError::Input(format!(
+                "part {} changed while it was merged",
+                self.path.display()
+            )));
+        }
+        Ok(file)
+    }
 }
 
 fn part_error(
@@ -194,12 +232,60 @@ fn open_part(path: &Path) -> Result<Part, ConvertError> {
             ));
         }
     };
-    drop(dag);
+    let levels = dag
+        .levels()
+        .iter()
+        .map(|s| {
+            let words = if s.is_leaf {
+                2 * s.node_count
+            } else {
+                // Each child takes at least `pointer_width` bytes.
+                let pointer_bytes = (s.bytes.len() as u64).saturating_sub(4 * s.node_count);
+                s.node_count + pointer_bytes / u64::from(s.pointer_width.max(1))
+            };
+            (s.node_count, words)
+        })
+        .collect();
+    let header = dag.header().clone();
     Ok(Part {
         path: path.to_path_buf(),
-        file,
         placement,
+        header,
+        bytes: file.bytes().len() as u64,
+        levels,
     })
+}
+
+/// Opens and checks every part, on every core; the first failure in the
+/// order of `parts`.
+fn open_parts(parts: &[PathBuf]) -> Result<Vec<Part>, ConvertError> {
+    let threads = std::thread::available_parallelism()
+        .map_or(1, usize::from)
+        .min(parts.len());
+    if threads <= 1 {
+        return parts.iter().map(|p| open_part(p)).collect();
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut results: Vec<Option<Result<Part, ConvertError>>> = Vec::new();
+    results.resize_with(parts.len(), || None);
+    let done = std::sync::Mutex::new(results);
+    std::thread::scope(|s| {
+        for _ in 0..threads {
+            s.spawn(|| {
+                loop {
+                    let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    let Some(path) = parts.get(i) else { break };
+                    let r = open_part(path);
+                    done.lock().expect("no thread panics holding it")[i] = Some(r);
+                }
+            });
+        }
+    });
+    done.into_inner()
+        .expect("no thread panics holding it")
+        .into_iter()
+        .map(|r| r.expect("every part was opened"))
+        .collect()
 }
 
 fn format_error(path: &Path, e: &FormatError) -> ConvertError {
@@ -238,21 +324,15 @@ pub fn merge(
         .memory_limit
         .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
 
-    let mut opened = parts
-        .iter()
-        .map(|p| open_part(p))
-        .collect::<Result<Vec<_>, _>>()?;
+    let mut opened = open_parts(parts)?;
     let validate_seconds = start.elapsed().as_secs_f64();
     opened.sort_by_key(|p| p.placement.cells.start);
 
     // One volume: the same depth, root cube, attributes, level and colours.
-    let first = Dag::open(opened[0].file.bytes()).map_err(|e| format_error(&opened[0].path, &e))?;
-    let header = first.header().clone();
+    let header = opened[0].header.clone();
     let placement0 = opened[0].placement.clone();
-    drop(first);
     for p in &opened[1..] {
-        let dag = Dag::open(p.file.bytes()).map_err(|e| format_error(&p.path, &e))?;
-        let h = dag.header();
+        let h = &p.header;
         let differ = if h.depth != header.depth {
             Some(format!("depth {} against {}", h.depth, header.depth))
         } else if h.root_min.map(f64::to_bits) != header.root_min.map(f64::to_bits)
@@ -330,8 +410,32 @@ pub fn merge(
 
     // Each part is one run, split at the region level (at least 1).
     let split = level.max(1);
-    let mut runs = RunMerge::new(depth, header.attribute_kind, split, &scratch, opts.buckets)?;
     let colour_cap = (limit / 16).clamp(1 << 20, 256 << 20);
+    // In memory when the parts' records, before deduplication, fit what is
+    // left of the limit (beside the colours, and the largest part's maps
+    // from its pointers to the merged records).
+    let lower = usize::from(split)..usize::from(depth) - 1;
+    let needed = MemoryMerge::estimate(lower.clone().map(|l| level_totals(&opened, l)))
+        + opened.iter().map(|p| p.bytes).max().unwrap_or(0);
+    let available =
+        limit.saturating_sub(current_rss().unwrap_or(0) + colour_cap + (limit / 16).max(24 << 20));
+    let in_memory = opts.buckets.is_none() && needed <= available;
+    let mut levels = if in_memory {
+        let mut m = MemoryMerge::new(depth, header.attribute_kind, split)?;
+        for l in lower {
+            let (records, words) = level_totals(&opened, l);
+            m.reserve(l as u8, records, words);
+        }
+        Levels::Memory(m)
+    } else {
+        Levels::Runs(RunMerge::new(
+            depth,
+            header.attribute_kind,
+            split,
+            &scratch,
+            opts.buckets,
+        )?)
+    };
     let packing = match (complete, placement.colours) {
         (true, ColourMode::Packed(e)) => Some(e),
         _ => None,
@@ -340,9 +444,14 @@ pub fn merge(
         .then(|| ColourSink::new(&scratch, colour_cap, packing));
     let mut input_bytes = 0u64;
     for p in &opened {
-        input_bytes += p.file.bytes().len() as u64;
-        let dag = Dag::open(p.file.bytes()).map_err(|e| format_error(&p.path, &e))?;
-        add_run(&dag, split, &mut runs).map_err(|e| match e {
+        let file = p.map()?;
+        input_bytes += file.bytes().len() as u64;
+        let dag = Dag::open(file.bytes()).map_err(|e| format_error(&p.path, &e))?;
+        match &mut levels {
+            Levels::Runs(runs) => add_run(&dag, split, runs),
+            Levels::Memory(m) => add_part(&dag, split, m),
+        }
+        .map_err(|e| match e {
             RunError::Format(e) => format_error(&p.path, &e),
             RunError::Convert(e) => e,
         })?;
@@ -357,7 +466,10 @@ pub fn merge(
         .saturating_sub(current_rss().unwrap_or(0) + (limit / 16).max(24 << 20))
         .max(MIN_MERGE_BUDGET);
     let colours = colours.map(ColourSink::finish).transpose()?;
-    let dag = runs.finish(budget, &|_| {})?;
+    let dag = match levels {
+        Levels::Runs(runs) => runs.finish(budget, &|_| {})?,
+        Levels::Memory(m) => m.finish()?,
+    };
     let file_header = FileHeader {
         depth,
         attributes: header.attribute_kind,
@@ -401,9 +513,24 @@ pub fn merge(
         input_bytes,
         max_buckets: dag.report().max_buckets,
         temp_bytes: scratch.bytes_written(),
+        in_memory,
         validate_seconds,
         total_seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The parts' records of level `level`, and the bound of their words.
+fn level_totals(parts: &[Part], level: usize) -> (u64, u64) {
+    parts.iter().fold((0, 0), |(r, w), p| {
+        let (pr, pw) = p.levels.get(level).copied().unwrap_or((0, 0));
+        (r + pr, w + pw)
+    })
+}
+
+/// The merge of the levels: in memory, or out of core.
+enum Levels {
+    Memory(MemoryMerge),
+    Runs(RunMerge),
 }
 
 enum RunError {
@@ -509,4 +636,70 @@ fn add_run(dag: &Dag<'_>, split: u8, runs: &mut RunMerge) -> Result<(), RunError
     }
     runs.end_run()?;
     Ok(())
+}
+
+/// Gives the part's levels `split ..= D − 2` and its level-`split` subtrees
+/// to the in-memory merge, bottom-up: each record's children become the
+/// merged indices of the records they point to, through a map from the
+/// part's pointers (word offsets, or leaf indices) to those indices.
+fn add_part(dag: &Dag<'_>, split: u8, merge: &mut MemoryMerge) -> Result<(), RunError> {
+    if dag.is_empty() {
+        return Ok(());
+    }
+    let leaf = dag.leaf_level();
+    let levels = dag.levels();
+    let not_a_record = |pointer: u32| {
+        RunError::Convert(ConvertError::Input(format!(
+            "a pointer ({pointer}) does not start a record"
+        )))
+    };
+    // `below[pointer]`: the merged index of the record at `pointer` of the
+    // level below (u32::MAX: no record starts there).
+    let mut below: Vec<u32> = (0..levels[usize::from(leaf)].node_count)
+        .map(|i| merge.leaf(dag.leaf(i as u32)?.0).map_err(RunError::from))
+        .collect::<Result<_, _>>()?;
+    let mut children = [0u32; 8];
+    for level in (split..leaf).rev() {
+        let section = &levels[usize::from(level)];
+        let mut map = vec![u32::MAX; section.units() as usize];
+        let mut word = 0u32;
+        for _ in 0..section.node_count {
+            let node = dag.node(level, word)?;
+            let count = node.child_count() as usize;
+            for (rank, c) in children[..count].iter_mut().enumerate() {
+                let p = node.pointer_at(rank as u32);
+                *c = below
+                    .get(p as usize)
+                    .copied()
+                    .filter(|&i| i != u32::MAX)
+                    .ok_or_else(|| not_a_record(p))?;
+            }
+            map[word as usize] = merge.node(level, node.header, &children[..count])?;
+            word += (node.record_size() / 4) as u32;
+        }
+        below = map;
+    }
+    let mut failed: Option<RunError> = None;
+    crate::region::visit_cells(dag, split, &mut |code, pointer| {
+        if failed.is_some() {
+            return;
+        }
+        let result = (|| -> Result<(), RunError> {
+            let index = below
+                .get(pointer as usize)
+                .copied()
+                .filter(|&i| i != u32::MAX)
+                .ok_or_else(|| not_a_record(pointer))?;
+            let count = dag.subtree_voxel_count(NodeRef {
+                level: split,
+                pointer,
+            })?;
+            merge.push_root(code, index, count)?;
+            Ok(())
+        })();
+        if let Err(e) = result {
+            failed = Some(e);
+        }
+    })?;
+    failed.map_or(Ok(()), Err)
 }

@@ -9,7 +9,7 @@ the scaling model of BENCHMARKS.md ("Conversions on a Dask cluster").
         [--bandwidth 1e9] [--cores 2]
 
 `overhead` alternates one `dagtool convert` (release build, the same
-`--bounds`) with a Dask `LocalCluster` of W worker processes (one thread
+`--bounds`, `--format-version 1`: the merge writes format 1.0) with a Dask `LocalCluster` of W worker processes (one thread
 each, `--worker-memory` each: Dask's nanny restarts a worker above it),
 checks that the outputs are byte-identical, and reports the medians, their
 ratio, each worker's peak resident memory (the task processes' high-water
@@ -88,7 +88,8 @@ def single(dagtool: str, mesh: str, out: Path, depth: int, bounds: str) -> dict:
     summary's time line."""
     t = time.perf_counter()
     p = subprocess.Popen(
-        [dagtool, "convert", mesh, "-o", str(out), "--depth", str(depth), "--bounds", bounds, "--force"],
+        [dagtool, "convert", mesh, "-o", str(out), "--depth", str(depth), "--bounds", bounds, "--force",
+         "--format-version", "1"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )

@@ -41,7 +41,8 @@ fn merged(parts: &[PathBuf], out: &Path) -> Vec<u8> {
 }
 
 /// The whole conversion, and the merge of all its level-`k` parts (in reverse
-/// order, out of core in 3 buckets per level), must be the same bytes.
+/// order, out of core in 3 buckets per level; in order, in memory; with a
+/// memory limit too small for the in-memory merge), must be the same bytes.
 fn check_identity(base: &ConvertOptions, k: u8, what: &str) -> Vec<PathBuf> {
     let stem = base.output.file_stem().unwrap().to_string_lossy();
     let dir = base
@@ -64,10 +65,50 @@ fn check_identity(base: &ConvertOptions, k: u8, what: &str) -> Vec<PathBuf> {
     assert!(summary.complete, "{what}");
     assert!(summary.voxels > 0, "{what}: a vacuous test");
     assert!(
+        !summary.in_memory,
+        "{what}: buckets force the out-of-core merge"
+    );
+    assert!(
         std::fs::read(&out).unwrap() == whole,
         "{what}: the merge of the level-{k} parts differs from the whole build"
     );
+    let summary = merge(&parts, &out, &forced()).unwrap_or_else(|e| panic!("{what}: {e}"));
+    assert!(summary.in_memory, "{what}: small parts merge in memory");
+    assert!(
+        std::fs::read(&out).unwrap() == whole,
+        "{what}: the in-memory merge of the level-{k} parts differs from the whole build"
+    );
+    let tight = MergeOptions {
+        memory_limit: Some(1 << 20),
+        ..forced()
+    };
+    let summary = merge(&parts, &out, &tight).unwrap_or_else(|e| panic!("{what}: {e}"));
+    assert!(
+        !summary.in_memory,
+        "{what}: 1 MiB is too little for the in-memory merge"
+    );
+    assert!(
+        std::fs::read(&out).unwrap() == whole,
+        "{what}: the merge of the level-{k} parts within 1 MiB differs from the whole build"
+    );
     parts
+}
+
+/// Merge options that replace the output.
+fn forced() -> MergeOptions {
+    MergeOptions {
+        force: true,
+        ..Default::default()
+    }
+}
+
+/// Merge options of one of the two level merges: in memory, or (`true`) out
+/// of core in 2 buckets per level.
+fn merge_path(out_of_core: bool) -> MergeOptions {
+    MergeOptions {
+        buckets: out_of_core.then_some(2),
+        ..Default::default()
+    }
 }
 
 fn two_colour_mesh(dir: &Path) -> PathBuf {
@@ -283,6 +324,13 @@ fn one_part_holding_everything_is_the_whole_file() {
     let summary = merge(std::slice::from_ref(&o.output), &m1, &one).unwrap();
     assert!(summary.complete && summary.format_version == 1);
     assert_eq!(std::fs::read(&m1).unwrap(), whole);
+    let out = dir.path().join("m-out-of-core.vdag");
+    let one_out_of_core = MergeOptions {
+        format_version: 1,
+        ..merge_path(true)
+    };
+    merge(std::slice::from_ref(&o.output), &out, &one_out_of_core).unwrap();
+    assert_eq!(std::fs::read(out).unwrap(), whole);
     // By default the merge writes the whole volume as convert does: 2.0.
     base.format_version = 2;
     base.output = dir.path().join("whole2.vdag");
@@ -291,6 +339,35 @@ fn one_part_holding_everything_is_the_whole_file() {
         merged(&[o.output], &dir.path().join("m.vdag")),
         std::fs::read(&base.output).unwrap()
     );
+}
+
+#[test]
+fn one_part_holding_everything_beside_empty_parts() {
+    // A sphere inside cell 0 of level 1: part 0 holds every voxel, the other
+    // seven are empty volumes; both merges, any order, give the whole file.
+    let dir = tempfile::tempdir().unwrap();
+    let obj = dir.path().join("sphere.obj");
+    sphere_mesh([-0.5, -0.5, -0.5], 0.3, 2).write(&obj);
+    let base = options(&obj, &dir.path().join("whole.vdag"), 7, "-1,-1,-1,2");
+    let parts = check_identity(&base, 1, "a sphere in one cell");
+    let whole = std::fs::read(&base.output).unwrap();
+    let empty = parts
+        .iter()
+        .filter(|p| {
+            dagfmt::Dag::open(&std::fs::read(p).unwrap())
+                .unwrap()
+                .is_empty()
+        })
+        .count();
+    assert_eq!(empty, 7, "one part holds everything");
+    for out_of_core in [false, true] {
+        let mut order = parts.clone();
+        order.rotate_left(3);
+        let out = dir.path().join(format!("m-{out_of_core}.vdag"));
+        let s = merge(&order, &out, &merge_path(out_of_core)).unwrap();
+        assert_eq!(s.in_memory, !out_of_core);
+        assert_eq!(std::fs::read(&out).unwrap(), whole);
+    }
 }
 
 #[test]
@@ -338,8 +415,8 @@ fn shared_parts() -> &'static (tempfile::TempDir, Vec<PathBuf>, Vec<u8>) {
 }
 
 /// Merges `parts[range]` by a random binary tree whose leaves are single
-/// parts, giving each merge its inputs in a random order; returns the
-/// root's file.
+/// parts, giving each merge its inputs in a random order and merging in
+/// memory or out of core at random; returns the root's file.
 fn tree_merge(
     parts: &[PathBuf],
     range: std::ops::Range<usize>,
@@ -361,7 +438,9 @@ fn tree_merge(
     } else {
         vec![right, left]
     };
-    merge(&inputs, &out, &MergeOptions::default()).unwrap_or_else(|e| panic!("{e}"));
+    let summary =
+        merge(&inputs, &out, &merge_path(c & 1 << 41 != 0)).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(summary.in_memory, c & 1 << 41 == 0);
     out
 }
 
@@ -375,9 +454,12 @@ proptest! {
     ) {
         let (_, parts, whole) = shared_parts();
         let dir = tempfile::tempdir().unwrap();
-        // All at once, in a random order.
+        // All at once, in a random order, in memory and out of core.
         let shuffled: Vec<PathBuf> = order.iter().map(|&i| parts[i].clone()).collect();
         prop_assert!(&merged(&shuffled, &dir.path().join("flat.vdag")) == whole);
+        let flat = dir.path().join("flat-out-of-core.vdag");
+        merge(&shuffled, &flat, &merge_path(true)).unwrap_or_else(|e| panic!("{e}"));
+        prop_assert!(&std::fs::read(flat).unwrap() == whole);
         // By a random binary tree of partial merges.
         let mut serial = 0;
         let root = tree_merge(parts, 0..parts.len(), &mut choices.into_iter(), dir.path(), &mut serial);

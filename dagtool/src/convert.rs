@@ -645,7 +645,12 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         .prefix(".vdag-1.0-")
         .suffix(".tmp")
         .tempfile_in(&dir)
-        .map_err(|e| ConvertError::io(format!("cannot create a file in {}", dir.display()), e))?;
+        .map_err(|e| {
+            ConvertError::io(
+                format!("cannot create files in output directory {}", dir.display()),
+                e,
+            )
+        })?;
     let mut inner = opts.clone();
     inner.output = temp.path().to_path_buf();
     inner.force = true;

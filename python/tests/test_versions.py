@@ -116,7 +116,7 @@ def test_convert_format_version_follows_the_cli(sphere_obj, dagtool, tmp_path):
 def test_merge_writes_the_whole_volume_in_the_version_asked(sphere_obj, dagtool, tmp_path):
     bounds = (-1.5, -1.5, -1.5, 3.0)
     parts = []
-    for i, region in enumerate(vdag.regions(1)):
+    for i, region in enumerate(vdag._vdag.regions(1)):
         part = tmp_path / f"part-{i}.vdag"
         vdag.convert_region(sphere_obj, part, 6, region, bounds=bounds, colors=True)
         assert vdag.open(part).version[0] == 1, "a part is format 1"

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use dagfmt::layout::{self, HEADER_CRC_OFFSET, HEADER_SIZE, SECTION_ENTRY_SIZE, SectionKind};
 use dagfmt::v2::{self, Child};
-use dagfmt::{AnyDag, Dag, Dag2, LeafMask};
+use dagfmt::{AnyDag, Dag2, LeafMask};
 
 use super::FileBytes;
 use crate::error::ConvertError;
@@ -312,12 +312,14 @@ pub fn dump(name: &str, bytes: &[u8], nodes: u64, packed: bool) -> String {
         l.line(at as u64 + 36, 4, "reserved (zero)");
     }
 
-    if let Ok(AnyDag::V2(dag)) = AnyDag::open(bytes) {
-        dump_v2_levels(&mut l, &dag, nodes);
-        return l.out;
-    }
-    let dag = match Dag::open(bytes) {
-        Ok(d) => d,
+    // Either version; a file the reader rejects is named by the reader's
+    // finding for its version (E010 for a truncated 2.0 file, not E003).
+    let dag = match AnyDag::open(bytes) {
+        Ok(AnyDag::V2(dag)) => {
+            dump_v2_levels(&mut l, &dag, nodes);
+            return l.out;
+        }
+        Ok(AnyDag::V1(d)) => d,
         Err(e) => {
             let _ = writeln!(
                 l.out,

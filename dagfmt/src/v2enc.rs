@@ -61,6 +61,10 @@ pub struct EncodeOptions {
 /// level and the level below add 8 bytes a word.
 const WORK_BYTES_PER_NODE: u64 = 160;
 
+/// A chunk's first-sequential-child positions and its sequential children
+/// (class rank, reflection), in the top-down pass.
+type FirstsAndSequential = (Vec<u64>, Vec<(u32, u8)>);
+
 /// Records (or leaves) per parallel chunk of the layout.
 const LAYOUT_CHUNK: usize = 1 << 15;
 
@@ -439,7 +443,7 @@ pub fn encode_levels(
         drop(child_stabs);
         // Each chunk's sequential children and, per stored node, where its
         // first one is among them; joined in order.
-        let parts: Vec<(Vec<u64>, Vec<(u32, u8)>)> = as_stored
+        let parts: Vec<FirstsAndSequential> = as_stored
             .par_chunks(LAYOUT_CHUNK)
             .map(|chunk| {
                 let mut firsts = Vec::with_capacity(chunk.len());

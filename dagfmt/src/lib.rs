@@ -8,6 +8,8 @@
 //!   section tables, which streams section bytes from callbacks;
 //! - [`v2`]: the format 2.0 level encoding (§23): the encoder, the one
 //!   record decoder [`v2::decode_node`] and the walks over 2.0 levels;
+//! - [`v2enc`]: the 2.0 level encoder on every core, within a memory budget
+//!   (finished tables spilled to a scratch file);
 //! - [`v2file`]: 2.0 files: [`Dag2`], [`AnyDag`] (opens both versions),
 //!   the 2.0 writer and the conversions 1.0 ↔ 2.0;
 //! - [`validate`]: checks every rule of the spec and reports every violation;
@@ -19,9 +21,10 @@
 //! - `fuzzing` (hidden): the harnesses of the fuzz targets in `fuzz/`, also
 //!   run by the test suite.
 //!
-//! The library does no file I/O except two helpers for the tools: [`mmap`]
+//! The library does no file I/O except two helpers for the tools, [`mmap`]
 //! (feature `mmap`), which memory-maps a file for the reader, and [`output`]
-//! (feature `output`), which writes a file atomically.
+//! (feature `output`), which writes a file atomically, and the scratch file
+//! of [`v2enc`] when its memory budget is exceeded.
 #![deny(missing_docs)]
 
 pub mod assemble;
@@ -43,6 +46,7 @@ pub mod stats;
 pub mod symmetry;
 pub mod transport;
 pub mod v2;
+pub mod v2enc;
 pub mod v2file;
 pub mod validate;
 mod validate2;

@@ -430,8 +430,31 @@ pub(crate) fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
     out
 }
 
-/// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23).
+/// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), in
+/// memory, on the threads of the current rayon pool
+/// ([`crate::v2enc::encode_levels`] without a memory budget; the bytes of
+/// [`encode_serial`]).
 pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
+    let unexpected = |e: std::io::Error| {
+        FormatError::new(ErrorCode::LevelTooLarge, 0, format!("2.0 encoding: {e}"))
+    };
+    match crate::v2enc::encode_levels(dag, &crate::v2enc::EncodeOptions::default()) {
+        Ok(levels) => levels.into_encoded().map_err(unexpected),
+        Err(crate::v2file::ConvertError::Format(e)) => Err(e),
+        Err(crate::v2file::ConvertError::Io(e)) => Err(unexpected(e)),
+        Err(crate::v2file::ConvertError::Build(e)) => Err(FormatError::new(
+            ErrorCode::LevelTooLarge,
+            0,
+            format!("2.0 encoding: {e}"),
+        )),
+    }
+}
+
+/// The reference encoder of the level sections of the 2.0 file of `dag`'s
+/// voxels (§23): single-threaded, every table in memory, the merge through
+/// [`canonicalize`] (classes numbered by first occurrence, then ranked). The
+/// oracle of [`encode`] in the tests.
+pub fn encode_serial(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
     let depth = dag.depth() as u8;
     let sym = canonicalize(dag, Group::Reflections, Group::Reflections)?;
     let leaf_level = sym.node_levels.len();
@@ -744,7 +767,7 @@ pub fn best_widths(hist: &[u64; 65]) -> Option<[u8; 3]> {
 
 /// Appends a record's bit stream to a level's bytes, least significant bit
 /// first (§23.2), a byte at a time.
-struct BitWriter<'a> {
+pub(crate) struct BitWriter<'a> {
     bytes: &'a mut Vec<u8>,
     /// Bits not yet written, least significant first; fewer than 8 between calls.
     pending: u64,
@@ -752,7 +775,7 @@ struct BitWriter<'a> {
 }
 
 impl<'a> BitWriter<'a> {
-    fn new(bytes: &'a mut Vec<u8>) -> Self {
+    pub(crate) fn new(bytes: &'a mut Vec<u8>) -> Self {
         BitWriter {
             bytes,
             pending: 0,
@@ -761,7 +784,7 @@ impl<'a> BitWriter<'a> {
     }
 
     /// Writes the low `width` bits of `value`, `width` ≤ 56.
-    fn put(&mut self, value: u64, width: u32) {
+    pub(crate) fn put(&mut self, value: u64, width: u32) {
         debug_assert!(width <= 56 && self.pending_bits < 8);
         let value = value & ((1u64 << width) - 1);
         self.pending |= value << self.pending_bits;
@@ -774,7 +797,7 @@ impl<'a> BitWriter<'a> {
     }
 
     /// Writes the last partial byte, zero-padded.
-    fn finish(self) {
+    pub(crate) fn finish(self) {
         if self.pending_bits > 0 {
             self.bytes.push(self.pending as u8);
         }

@@ -21,6 +21,7 @@ use crate::layout::{AttributeKind, SectionKind, VERSION_MAJOR_2};
 use crate::packed_colors::PackedColors;
 use crate::reader::{ColorTable, Dag, Header, Layout, SectionEntry, parse_layout};
 use crate::v2::{self, Encoded, LevelView};
+use crate::v2enc::{EncodeOptions, LevelSummary, encode_levels};
 
 /// A memory-safe, zero-copy view of a format 2.0 `.vdag` file.
 ///
@@ -370,6 +371,12 @@ impl From<FormatError> for ConvertError {
     }
 }
 
+impl From<io::Error> for ConvertError {
+    fn from(e: io::Error) -> Self {
+        ConvertError::Io(e)
+    }
+}
+
 impl From<BuildError> for ConvertError {
     fn from(e: BuildError) -> Self {
         ConvertError::Build(e)
@@ -384,20 +391,44 @@ pub fn layout_v2(
     header: FileHeader,
     extra: &[(SectionInfo, &[u8])],
 ) -> Result<FileLayout, BuildError> {
-    let last = encoded.levels.len() - 1;
-    let mut sections = Vec::with_capacity(encoded.levels.len() + extra.len());
+    let levels: Vec<LevelSummary> = encoded
+        .levels
+        .iter()
+        .map(|l| LevelSummary {
+            widths: l.widths,
+            item_count: l.item_count,
+            is_leaf: l.is_leaf,
+            length: l.bytes.len() as u64,
+            crc: crc32c::crc32c(&l.bytes),
+        })
+        .collect();
+    layout_levels(&levels, header, extra)
+}
+
+/// The layout of a 2.0 file of levels `levels` (root first, the leaf level
+/// last), the header fields `header` and the sections `extra`.
+fn layout_levels(
+    levels: &[LevelSummary],
+    header: FileHeader,
+    extra: &[(SectionInfo, &[u8])],
+) -> Result<FileLayout, BuildError> {
+    let last = levels.len() - 1;
+    let mut sections = Vec::with_capacity(levels.len() + extra.len());
     let mut widths = Vec::with_capacity(last);
-    for (l, level) in encoded.levels.iter().enumerate() {
-        let crc = crc32c::crc32c(&level.bytes);
+    for (l, level) in levels.iter().enumerate() {
         if l == last {
-            sections.push(SectionInfo::leaf_level(l as u8, level.item_count, crc));
+            sections.push(SectionInfo::leaf_level(
+                l as u8,
+                level.item_count,
+                level.crc,
+            ));
         } else {
             sections.push(SectionInfo::node_level(
                 l as u8,
                 level.widths[0],
-                level.bytes.len() as u64,
+                level.length,
                 level.item_count,
-                crc,
+                level.crc,
             ));
             widths.push(level.widths);
         }
@@ -441,11 +472,35 @@ fn file_header(header: &Header) -> FileHeader {
 /// file `dag` (`dagtool upgrade`): its levels encoded by [`v2::encode`], its
 /// colour and optional sections copied byte for byte.
 pub fn upgrade(dag: &Dag<'_>) -> Result<Vec<u8>, ConvertError> {
-    let encoded = v2::encode(dag)?;
-    let extra = extra_sections(dag.bytes(), dag.sections(), dag.header().depth);
     let mut out = Vec::new();
-    write_v2(&encoded, file_header(dag.header()), &extra, &mut out)?;
+    upgrade_to(dag, &EncodeOptions::default(), &mut out)?;
     Ok(out)
+}
+
+/// Writes the 2.0 file of [`upgrade`] to `w`, its levels encoded by
+/// [`encode_levels`] within `options`' memory budget and streamed to `w`
+/// (from the scratch file, where they went there). The bytes are those of
+/// [`upgrade`] whatever the budget. Returns the bytes of the encoder's
+/// tables that went to the scratch file (0: none did).
+pub fn upgrade_to<W: Write + ?Sized>(
+    dag: &Dag<'_>,
+    options: &EncodeOptions,
+    w: &mut W,
+) -> Result<u64, ConvertError> {
+    let mut encoded = encode_levels(dag, options)?;
+    let extra = extra_sections(dag.bytes(), dag.sections(), dag.header().depth);
+    let layout = layout_levels(&encoded.levels, file_header(dag.header()), &extra)?;
+    let levels = encoded.levels.len();
+    layout
+        .write_to(w, |index, sink| {
+            if index < levels {
+                encoded.write_level(index, sink)
+            } else {
+                sink(extra[index - levels].1)
+            }
+        })
+        .map_err(ConvertError::Io)?;
+    Ok(encoded.spilled_bytes())
 }
 
 /// The 1.0 file of the voxels, attributes, colours and root cube of the 2.0

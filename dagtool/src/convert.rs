@@ -636,8 +636,9 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
 
 /// Format 2.0: the 1.0 file is built into a temporary file beside the
 /// output (so the memory limit and the out-of-core build apply unchanged),
-/// then upgraded in memory (`dagfmt::v2file::upgrade`) and written
-/// atomically; the temporary file is removed.
+/// then upgraded (`dagfmt::v2file::upgrade_to`: on every core, within what
+/// is left of the memory limit, finished tables spilled to a scratch file
+/// past it) and written atomically; the temporary files are removed.
 fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     check_output(&opts.output, opts.force)?;
     let dir = dagfmt::output::output_dir(&opts.output);
@@ -661,12 +662,43 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         .map_err(|e| ConvertError::io("cannot read back the 1.0 file", e))?;
     let dag = dagfmt::Dag::open(map.bytes())
         .map_err(|e| ConvertError::Input(format!("the 1.0 file built does not open: {e}")))?;
-    let v2 = dagfmt::v2file::upgrade(&dag)
-        .map_err(|e| ConvertError::Limit(format!("cannot encode format 2.0: {e}")))?;
+    // The encoder's share of the limit: what the 1.0 build left resident
+    // and the mapped 1.0 file (read whole) are taken; finished tables
+    // beyond it go to a scratch file in the temporary files' directory.
+    // The hidden --spill-* testing options spill every table.
+    let limit = opts
+        .memory_limit
+        .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
+    let budget = if opts.forced_spill.is_some() {
+        0
+    } else {
+        limit.saturating_sub(current_rss().unwrap_or(0) + map.bytes().len() as u64 + margin(limit))
+    };
+    let options = dagfmt::v2enc::EncodeOptions {
+        memory_budget: Some(budget),
+        scratch_dir: Some(opts.tmp_dir.clone().unwrap_or_else(|| dir.clone())),
+    };
+    let mut failure = None;
     summary.v1_file_bytes = Some(summary.file_bytes);
-    summary.file_bytes = write_atomic(&opts.output, opts.force, |w| {
-        std::io::Write::write_all(w, &v2)
-    })?;
+    let written = write_atomic(
+        &opts.output,
+        opts.force,
+        |w| match dagfmt::v2file::upgrade_to(&dag, &options, w) {
+            Ok(_) => Ok(()),
+            Err(dagfmt::v2file::ConvertError::Io(e)) => Err(e),
+            Err(e) => {
+                let message = e.to_string();
+                failure = Some(e);
+                Err(std::io::Error::other(message))
+            }
+        },
+    );
+    if let Some(e) = failure {
+        return Err(ConvertError::Limit(format!(
+            "cannot encode format 2.0: {e}"
+        )));
+    }
+    summary.file_bytes = written?;
     drop(map);
     drop(temp);
     let upgrade = start.elapsed().as_secs_f64();

@@ -60,8 +60,12 @@ fn convert_and_upgrade_round_trip_between_the_versions() {
     let explicit = dir.path().join("explicit.vdag");
     convert(&mesh, &explicit, 7, &["--colors", "--format-version", "2"]);
     assert_eq!(std::fs::read(&explicit).unwrap(), b2);
-    // Out of core (a spilled build), the 2.0 output is the same, byte for byte.
+    // Out of core (a spilled 1.0 build, and a 2.0 encoding whose tables all
+    // go to the scratch file), the 2.0 output is the same, byte for byte, and
+    // no temporary file is left.
     let spilled = dir.path().join("spilled.vdag");
+    let tmp = dir.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
     convert(
         &mesh,
         &spilled,
@@ -72,9 +76,12 @@ fn convert_and_upgrade_round_trip_between_the_versions() {
             "2",
             "--spill-buckets",
             "5",
+            "--tmp-dir",
+            s(&tmp),
         ],
     );
     assert_eq!(std::fs::read(&spilled).unwrap(), b2);
+    assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0);
     // upgrade 1 -> 2 gives what convert --format-version 2 wrote, and 2 -> 1
     // gives the original 1.0 bytes back.
     let up = dir.path().join("up.vdag");

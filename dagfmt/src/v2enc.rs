@@ -1,0 +1,1030 @@
+//! The format 2.0 level encoder (spec/VDAG.md §23.6–§23.7) on every core
+//! and within a memory budget.
+//!
+//! It writes the bytes of [`crate::v2::encode_serial`], the reference
+//! encoder (which merges through [`crate::symmetry::canonicalize`] and keeps
+//! every table in memory), in three passes:
+//!
+//! 1. **Merge and rank**, bottom-up. Each 1.0 node (or leaf) of a level is
+//!    described in intrinsic terms — its children as `1 + 8·rank + r` (§23.6)
+//!    through the table of the level below — and turned into the least of its
+//!    8 reflected forms, in parallel chunks. The level's forms are then sorted
+//!    (in parallel): equal forms are one class, and a class's position among
+//!    the distinct forms *is* its intrinsic rank, so merging and ranking are
+//!    one sort, with no hash map and no class numbering to translate. The
+//!    level's 1.0 nodes get their references (rank and least reflection) for
+//!    the level above; the ranked keys and stabilisers are kept.
+//! 2. **Order**, top-down (§23.7): reference counts, the shared classes by
+//!    count, the sequential ones by parent.
+//! 3. **Layout**, bottom-up: per level a histogram of the reference widths
+//!    (in parallel), the widths, then the records, written in parallel
+//!    chunks and joined in order.
+//!
+//! Every table a later pass needs (ranked keys, stabilisers, counts, the
+//! stored order, the finished level bytes) goes through a [`Store`]: in
+//! memory while the tables held fit the budget, else appended to one unnamed
+//! scratch file and read back when its pass comes. Spilling changes where the
+//! tables are, never what they hold, so the output does not depend on the
+//! budget (nor on the number of threads: every parallel step is a map whose
+//! results are joined in order, or a sort of distinct keys).
+
+use std::fs::File;
+use std::io::{self, Read, Seek, SeekFrom, Write};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+
+use rayon::prelude::*;
+
+use crate::error::{ErrorCode, FormatError};
+use crate::reader::Dag;
+use crate::symmetry::{NodeKey, least_form, reflect_leaf};
+use crate::v2::{BitWriter, Encoded, EncodedLevel, best_widths, norm, reflect_key};
+use crate::v2file::ConvertError;
+
+/// How [`encode_levels`] may use memory.
+#[derive(Clone, Debug, Default)]
+pub struct EncodeOptions {
+    /// Bytes the encoder may hold (its per-level working set and the tables
+    /// kept for later passes) before it moves finished tables to a scratch
+    /// file; `None`: no limit, everything stays in memory. The mapped 1.0
+    /// file is not counted. A budget below one level's working set spills
+    /// every table and goes on (the working set is the least it needs).
+    pub memory_budget: Option<u64>,
+    /// Directory of the scratch file (an unnamed temporary file); default:
+    /// the system's temporary directory.
+    pub scratch_dir: Option<PathBuf>,
+}
+
+/// Bytes of the merge pass's working set per 1.0 node of a level: its form
+/// (key, node, reflection, stabiliser: 80 bytes) and its start word (4),
+/// plus the ranked key of its class (72) at worst; the tables by word of the
+/// level and the level below add 8 bytes a word.
+const WORK_BYTES_PER_NODE: u64 = 160;
+
+/// A chunk's first-sequential-child positions and its sequential children
+/// (class rank, reflection), in the top-down pass.
+type FirstsAndSequential = (Vec<u64>, Vec<(u32, u8)>);
+
+/// Records (or leaves) per parallel chunk of the layout.
+const LAYOUT_CHUNK: usize = 1 << 15;
+
+/// The encoded level sections, each in memory or in the scratch file, with
+/// what the section table needs; [`EncodedLevels::write_level`] streams them.
+#[derive(Debug)]
+pub struct EncodedLevels {
+    /// Depth D.
+    pub depth: u8,
+    /// Per level, root first: widths, items, leaf flag, length and CRC-32C.
+    pub levels: Vec<LevelSummary>,
+    bytes: Vec<Table<u8>>,
+    store: Store,
+}
+
+/// What the section table says of one encoded level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LevelSummary {
+    /// The level's widths w_1 ≤ w_2 ≤ w_3 (0, 0, 0 for the leaf level).
+    pub widths: [u8; 3],
+    /// Records or leaves in the section.
+    pub item_count: u64,
+    /// Whether this is the leaf level.
+    pub is_leaf: bool,
+    /// Bytes of the section.
+    pub length: u64,
+    /// CRC-32C of the section's bytes.
+    pub crc: u32,
+}
+
+impl EncodedLevels {
+    /// Bytes of the tables that went to the scratch file (0: none did).
+    pub fn spilled_bytes(&self) -> u64 {
+        self.store.end
+    }
+
+    /// Streams the bytes of level `level` to `sink`, in pieces.
+    pub fn write_level(
+        &mut self,
+        level: usize,
+        sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+    ) -> io::Result<()> {
+        self.store.stream(&self.bytes[level], sink)
+    }
+
+    /// The levels in memory, as [`crate::v2::encode_serial`] returns them.
+    pub fn into_encoded(mut self) -> io::Result<Encoded> {
+        let mut levels = Vec::with_capacity(self.levels.len());
+        for (summary, table) in self.levels.iter().zip(std::mem::take(&mut self.bytes)) {
+            levels.push(EncodedLevel {
+                bytes: self.store.take(table)?,
+                widths: summary.widths,
+                item_count: summary.item_count,
+                is_leaf: summary.is_leaf,
+            });
+        }
+        Ok(Encoded {
+            depth: self.depth,
+            levels,
+        })
+    }
+}
+
+/// A fixed-size item of a table that may go to the scratch file.
+trait Item: Copy + Send + Sync {
+    /// Bytes of one item in the file.
+    const BYTES: usize;
+    fn put(&self, out: &mut Vec<u8>);
+    fn get(bytes: &[u8]) -> Self;
+}
+
+impl Item for u8 {
+    const BYTES: usize = 1;
+    fn put(&self, out: &mut Vec<u8>) {
+        out.push(*self);
+    }
+    fn get(bytes: &[u8]) -> Self {
+        bytes[0]
+    }
+}
+
+impl Item for u32 {
+    const BYTES: usize = 4;
+    fn put(&self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.to_le_bytes());
+    }
+    fn get(bytes: &[u8]) -> Self {
+        u32::from_le_bytes(bytes[..4].try_into().expect("4 bytes"))
+    }
+}
+
+impl Item for u64 {
+    const BYTES: usize = 8;
+    fn put(&self, out: &mut Vec<u8>) {
+        out.extend_from_slice(&self.to_le_bytes());
+    }
+    fn get(bytes: &[u8]) -> Self {
+        u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes"))
+    }
+}
+
+impl Item for (u32, u8) {
+    const BYTES: usize = 5;
+    fn put(&self, out: &mut Vec<u8>) {
+        self.0.put(out);
+        out.push(self.1);
+    }
+    fn get(bytes: &[u8]) -> Self {
+        (u32::get(bytes), bytes[4])
+    }
+}
+
+impl Item for NodeKey {
+    const BYTES: usize = 68;
+    fn put(&self, out: &mut Vec<u8>) {
+        for s in &self.slots {
+            s.put(out);
+        }
+        self.attribute.put(out);
+    }
+    fn get(bytes: &[u8]) -> Self {
+        let mut slots = [0u64; 8];
+        for (i, s) in slots.iter_mut().enumerate() {
+            *s = u64::get(&bytes[8 * i..]);
+        }
+        NodeKey {
+            slots,
+            attribute: u32::get(&bytes[64..]),
+        }
+    }
+}
+
+/// A table kept for a later pass: in memory, or `items` items at byte `at`
+/// of the scratch file.
+#[derive(Debug)]
+enum Table<T> {
+    Held(Vec<T>),
+    Spilled { at: u64, items: usize },
+}
+
+/// Where the finished tables wait: in memory while `held` stays within
+/// `budget`, else in the scratch file (created when first needed, appended
+/// to, never rewritten).
+#[derive(Debug)]
+struct Store {
+    budget: Option<u64>,
+    held: u64,
+    dir: Option<PathBuf>,
+    file: Option<File>,
+    end: u64,
+}
+
+/// Bytes per piece when a table is written to or read from the scratch file.
+const PIECE: usize = 1 << 20;
+
+impl Store {
+    fn file(&mut self) -> io::Result<&mut File> {
+        if self.file.is_none() {
+            let dir = self.dir.clone().unwrap_or_else(std::env::temp_dir);
+            let file = tempfile::tempfile_in(&dir).map_err(|e| {
+                io::Error::new(
+                    e.kind(),
+                    format!("cannot create a scratch file in {}: {e}", dir.display()),
+                )
+            })?;
+            self.file = Some(file);
+        }
+        Ok(self.file.as_mut().expect("just created"))
+    }
+
+    /// Keeps `items` for a later pass.
+    fn keep<T: Item>(&mut self, items: Vec<T>) -> io::Result<Table<T>> {
+        let bytes = std::mem::size_of_val(items.as_slice()) as u64;
+        if self.budget.is_none_or(|b| self.held + bytes <= b) {
+            self.held += bytes;
+            return Ok(Table::Held(items));
+        }
+        let at = self.end;
+        let file = self.file()?;
+        file.seek(SeekFrom::Start(at))?;
+        let mut buf = Vec::with_capacity(PIECE + T::BYTES);
+        for piece in items.chunks(PIECE / T::BYTES) {
+            buf.clear();
+            for x in piece {
+                x.put(&mut buf);
+            }
+            file.write_all(&buf)?;
+        }
+        self.end += (items.len() * T::BYTES) as u64;
+        Ok(Table::Spilled {
+            at,
+            items: items.len(),
+        })
+    }
+
+    /// Gives back a table kept by [`Store::keep`].
+    fn take<T: Item>(&mut self, table: Table<T>) -> io::Result<Vec<T>> {
+        match table {
+            Table::Held(v) => {
+                self.held -= std::mem::size_of_val(v.as_slice()) as u64;
+                Ok(v)
+            }
+            Table::Spilled { at, items } => {
+                let mut out = Vec::with_capacity(items);
+                self.read_pieces(at, items * T::BYTES, T::BYTES, |piece| {
+                    out.extend(piece.chunks_exact(T::BYTES).map(T::get));
+                    Ok(())
+                })?;
+                Ok(out)
+            }
+        }
+    }
+
+    /// Streams a table of bytes to `sink` without taking it.
+    fn stream(
+        &mut self,
+        table: &Table<u8>,
+        sink: &mut dyn FnMut(&[u8]) -> io::Result<()>,
+    ) -> io::Result<()> {
+        match *table {
+            Table::Held(ref v) => sink(v),
+            Table::Spilled { at, items } => self.read_pieces(at, items, 1, sink),
+        }
+    }
+
+    /// Reads `len` bytes at `at` of the scratch file in pieces of a multiple
+    /// of `unit` bytes.
+    fn read_pieces(
+        &mut self,
+        at: u64,
+        len: usize,
+        unit: usize,
+        mut piece: impl FnMut(&[u8]) -> io::Result<()>,
+    ) -> io::Result<()> {
+        let file = self.file()?;
+        file.seek(SeekFrom::Start(at))?;
+        let step = PIECE / unit * unit;
+        let mut buf = vec![0u8; step.min(len)];
+        let mut left = len;
+        while left > 0 {
+            let n = step.min(left);
+            file.read_exact(&mut buf[..n])?;
+            piece(&buf[..n])?;
+            left -= n;
+        }
+        Ok(())
+    }
+}
+
+/// A 1.0 node in intrinsic terms, least of its reflected forms.
+#[derive(Clone, Copy, Debug)]
+struct Form {
+    key: NodeKey,
+    /// Ordinal of the 1.0 node in its level.
+    node: u32,
+    /// The reflection from the node to its least form (the same one turns
+    /// the least form back into the node).
+    reflection: u8,
+    /// The stabiliser of the least form, as a bit set of reflections.
+    stab: u8,
+}
+
+/// The stabiliser of a leaf mask: the reflections that leave it unchanged.
+fn leaf_stab(mask: u64) -> u8 {
+    (0..8u8)
+        .filter(|&r| reflect_leaf(mask, r) == mask)
+        .fold(0, |a, r| a | 1 << r)
+}
+
+/// The slot value (§23.6) naming class `rank` reached by reflection `r`.
+fn slot_value(rank: usize, r: u8) -> u64 {
+    1 + ((rank as u64) << 3) + u64::from(r)
+}
+
+/// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), the
+/// bytes of [`crate::v2::encode_serial`], on the threads of the current
+/// rayon pool and within `options`' memory budget.
+pub fn encode_levels(
+    dag: &Dag<'_>,
+    options: &EncodeOptions,
+) -> Result<EncodedLevels, ConvertError> {
+    let depth = dag.depth() as u8;
+    let levels = dag.levels();
+    let leaf_level = usize::from(dag.leaf_level());
+    // The largest per-level working set, which the budget must leave room for.
+    let work = (0..=leaf_level)
+        .map(|l| {
+            let below = levels.get(l + 1).map_or(0, |s| s.units());
+            levels[l].node_count * WORK_BYTES_PER_NODE + 8 * (levels[l].units() + below)
+        })
+        .max()
+        .unwrap_or(0);
+    let mut store = Store {
+        budget: options.memory_budget.map(|b| b.saturating_sub(work)),
+        held: 0,
+        dir: options.scratch_dir.clone(),
+        file: None,
+        end: 0,
+    };
+    let mut summaries = Vec::with_capacity(leaf_level + 1);
+    let mut bytes = Vec::with_capacity(leaf_level + 1);
+    if dag.is_empty() {
+        // An empty node level has no reference: its minimising widths are
+        // the least triple, 1, 1, 1 (§23.2).
+        for l in 0..=leaf_level {
+            let is_leaf = l == leaf_level;
+            summaries.push(LevelSummary {
+                widths: if is_leaf { [0; 3] } else { [1; 3] },
+                item_count: 0,
+                is_leaf,
+                length: 0,
+                crc: crc32c::crc32c(&[]),
+            });
+            bytes.push(Table::Held(Vec::new()));
+        }
+        return Ok(EncodedLevels {
+            depth,
+            levels: summaries,
+            bytes,
+            store,
+        });
+    }
+
+    // Pass 1: merge and rank, bottom-up.
+    let (leaves, mut child_stabs, mut slot_at) = merge_leaves(dag, leaf_level)?;
+    let leaf_classes = leaves.len();
+    let leaves = store.keep(leaves)?;
+    let mut stabs: Vec<Option<Table<u8>>> = (0..=leaf_level).map(|_| None).collect();
+    let mut canon: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
+    let mut class_counts = vec![0usize; leaf_level + 1];
+    class_counts[leaf_level] = leaf_classes;
+    for level in (0..leaf_level).rev() {
+        let (keys, level_stabs, next_slot_at) = merge_level(dag, level, &slot_at, &child_stabs)?;
+        slot_at = next_slot_at;
+        class_counts[level] = keys.len();
+        canon[level] = Some(store.keep(keys)?);
+        stabs[level + 1] = Some(store.keep(std::mem::replace(&mut child_stabs, level_stabs))?);
+    }
+    // The root's stabiliser is not needed: nothing refers to it.
+    drop(child_stabs);
+    drop(slot_at);
+
+    // Pass 2: the order of each level, top-down (§23.7).
+    let mut stored: Vec<(u32, u8)> = vec![(0, 0)];
+    // Per level: its stored order, the first sequential child of each stored
+    // node, each stored node as stored, and the reference counts of the level
+    // below, for the layout.
+    let mut kept_stored: Vec<Option<Table<(u32, u8)>>> = (0..=leaf_level).map(|_| None).collect();
+    let mut kept_firsts: Vec<Option<Table<u64>>> = (0..leaf_level).map(|_| None).collect();
+    let mut kept_keys: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
+    let mut kept_counts: Vec<Option<Table<u32>>> = (0..=leaf_level).map(|_| None).collect();
+    for level in 0..leaf_level {
+        let keys = store.take(canon[level].take().expect("merged"))?;
+        let child_stabs = store.take(stabs[level + 1].take().expect("merged"))?;
+        let counts: Vec<AtomicU32> = (0..class_counts[level + 1])
+            .map(|_| AtomicU32::new(0))
+            .collect();
+        keys.par_iter().for_each(|key| {
+            for &s in &key.slots {
+                if s != 0 {
+                    counts[((s - 1) >> 3) as usize].fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        });
+        let c: Vec<u32> = counts.into_iter().map(AtomicU32::into_inner).collect();
+        let mut next: Vec<(u32, u8)> = (0..c.len() as u32)
+            .filter(|&i| c[i as usize] > 1)
+            .map(|i| (i, 0))
+            .collect();
+        next.par_sort_unstable_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
+        let as_stored: Vec<NodeKey> = stored
+            .par_iter()
+            .map(|&(rank, applied)| reflect_key(&keys[rank as usize], applied, &child_stabs))
+            .collect();
+        drop(keys);
+        drop(child_stabs);
+        // Each chunk's sequential children and, per stored node, where its
+        // first one is among them; joined in order.
+        let parts: Vec<FirstsAndSequential> = as_stored
+            .par_chunks(LAYOUT_CHUNK)
+            .map(|chunk| {
+                let mut firsts = Vec::with_capacity(chunk.len());
+                let mut seq = Vec::new();
+                for key in chunk {
+                    firsts.push(seq.len() as u64);
+                    for &s in &key.slots {
+                        if s != 0 {
+                            let child = ((s - 1) >> 3) as u32;
+                            if c[child as usize] == 1 {
+                                seq.push((child, ((s - 1) & 7) as u8));
+                            }
+                        }
+                    }
+                }
+                (firsts, seq)
+            })
+            .collect();
+        let mut firsts = Vec::with_capacity(as_stored.len());
+        for (part_firsts, seq) in parts {
+            let base = next.len() as u64;
+            firsts.extend(part_firsts.iter().map(|f| base + f));
+            next.extend_from_slice(&seq);
+        }
+        kept_stored[level] = Some(store.keep(std::mem::replace(&mut stored, next))?);
+        kept_firsts[level] = Some(store.keep(firsts)?);
+        kept_keys[level] = Some(store.keep(as_stored)?);
+        kept_counts[level + 1] = Some(store.keep(c)?);
+    }
+    kept_stored[leaf_level] = Some(store.keep(stored)?);
+
+    // Pass 3: the layout, bottom-up.
+    let mut bytes: Vec<Option<Table<u8>>> = (0..=leaf_level).map(|_| None).collect();
+    let mut summaries: Vec<Option<LevelSummary>> = vec![None; leaf_level + 1];
+    let stored_leaves = store.take(kept_stored[leaf_level].take().expect("ordered"))?;
+    // A root that is a leaf (depth 2) has no level above to count it.
+    let mut c = match kept_counts[leaf_level].take() {
+        Some(t) => store.take(t)?,
+        None => vec![1],
+    };
+    let leaves = store.take(leaves)?;
+    // Address of each shared child by rank; of each child by position
+    // (`None`: the position itself, in the leaf level).
+    let mut addr_of_rank = vec![0u64; leaf_classes];
+    for (pos, &(rank, _)) in stored_leaves.iter().enumerate() {
+        if c[rank as usize] > 1 {
+            addr_of_rank[rank as usize] = pos as u64;
+        }
+    }
+    let leaf_bytes: Vec<u8> = stored_leaves
+        .par_chunks(LAYOUT_CHUNK)
+        .flat_map_iter(|chunk| {
+            chunk.iter().flat_map(|&(rank, applied)| {
+                reflect_leaf(leaves[rank as usize], applied).to_le_bytes()
+            })
+        })
+        .collect();
+    drop(leaves);
+    summaries[leaf_level] = Some(LevelSummary {
+        widths: [0; 3],
+        item_count: stored_leaves.len() as u64,
+        is_leaf: true,
+        length: leaf_bytes.len() as u64,
+        crc: crc32c::crc32c(&leaf_bytes),
+    });
+    bytes[leaf_level] = Some(store.keep(leaf_bytes)?);
+    drop(stored_leaves);
+    let mut addr_of_pos: Option<Vec<u64>> = None;
+    for level in (0..leaf_level).rev() {
+        let keys = store.take(kept_keys[level].take().expect("ordered"))?;
+        let firsts = store.take(kept_firsts[level].take().expect("ordered"))?;
+        let stored_here = store.take(kept_stored[level].take().expect("ordered"))?;
+        let counts_here = match kept_counts[level].take() {
+            Some(t) => store.take(t)?,
+            None => vec![1],
+        };
+        let layout = LevelLayout {
+            counts: &c,
+            addr_of_rank: &addr_of_rank,
+            addr_of_pos: addr_of_pos.as_deref(),
+        };
+        let hist = keys
+            .par_chunks(LAYOUT_CHUNK)
+            .zip(firsts.par_chunks(LAYOUT_CHUNK))
+            .map(|(keys, firsts)| {
+                let mut hist = [0u64; 65];
+                for (key, &first) in keys.iter().zip(firsts) {
+                    layout.record(key, first, |v| hist[bits_of(v) as usize] += 1);
+                }
+                hist
+            })
+            .reduce(
+                || [0u64; 65],
+                |mut a, b| {
+                    for (x, y) in a.iter_mut().zip(b) {
+                        *x += y;
+                    }
+                    a
+                },
+            );
+        let widths = best_widths(&hist).ok_or_else(|| {
+            FormatError::new(
+                ErrorCode::LevelTooLarge,
+                0,
+                format!(
+                    "level {level}: a reference needs more than {} bits",
+                    crate::v2::MAX_WIDTH
+                ),
+            )
+        })?;
+        // Each chunk's bytes and its records' offsets within them.
+        let pieces: Vec<(Vec<u8>, Vec<u64>)> = keys
+            .par_chunks(LAYOUT_CHUNK)
+            .zip(firsts.par_chunks(LAYOUT_CHUNK))
+            .map(|(keys, firsts)| {
+                let mut out = Vec::new();
+                let mut offsets = Vec::with_capacity(keys.len());
+                for (key, &first) in keys.iter().zip(firsts) {
+                    offsets.push(out.len() as u64);
+                    layout.write(key, first, widths, &mut out);
+                }
+                (out, offsets)
+            })
+            .collect();
+        drop(keys);
+        drop(firsts);
+        let length: u64 = pieces.iter().map(|p| p.0.len() as u64).sum();
+        let mut level_bytes = Vec::with_capacity(length as usize);
+        let mut next_addr_of_pos = Vec::with_capacity(stored_here.len());
+        for (piece, offsets) in pieces {
+            let base = level_bytes.len() as u64;
+            next_addr_of_pos.extend(offsets.iter().map(|o| base + o));
+            level_bytes.extend_from_slice(&piece);
+        }
+        let mut next_addr_of_rank = vec![0u64; class_counts[level]];
+        for (&(rank, _), &offset) in stored_here.iter().zip(&next_addr_of_pos) {
+            if level == 0 || counts_here[rank as usize] > 1 {
+                next_addr_of_rank[rank as usize] = offset;
+            }
+        }
+        summaries[level] = Some(LevelSummary {
+            widths,
+            item_count: stored_here.len() as u64,
+            is_leaf: false,
+            length,
+            crc: crc32c::crc32c(&level_bytes),
+        });
+        bytes[level] = Some(store.keep(level_bytes)?);
+        addr_of_pos = Some(next_addr_of_pos);
+        addr_of_rank = next_addr_of_rank;
+        c = counts_here;
+    }
+    Ok(EncodedLevels {
+        depth,
+        levels: summaries
+            .into_iter()
+            .map(|s| s.expect("laid out"))
+            .collect(),
+        bytes: bytes.into_iter().map(|b| b.expect("laid out")).collect(),
+        store,
+    })
+}
+
+/// The bits a reference value needs (at least 1).
+fn bits_of(v: u64) -> u32 {
+    (64 - v.leading_zeros()).max(1)
+}
+
+/// What the layout of a level reads of the level below.
+struct LevelLayout<'a> {
+    /// Reference counts of the classes below, by rank.
+    counts: &'a [u32],
+    /// Address of each shared class below, by rank.
+    addr_of_rank: &'a [u64],
+    /// Address of each stored node below, by position (`None`: the leaf
+    /// level, where it is the position).
+    addr_of_pos: Option<&'a [u64]>,
+}
+
+impl LevelLayout<'_> {
+    /// Calls `reference` with each shared child's reference value in
+    /// physical slot order, then with the base reference, if any, of the
+    /// record of `key` whose first sequential child is at position `first`.
+    /// Returns the child mask.
+    fn record(&self, key: &NodeKey, first: u64, mut reference: impl FnMut(u64)) -> u8 {
+        let mut mask = 0u8;
+        let mut any_seq = false;
+        for (p, &s) in key.slots.iter().enumerate() {
+            if s == 0 {
+                continue;
+            }
+            mask |= 1 << p;
+            let child = ((s - 1) >> 3) as usize;
+            if self.counts[child] == 1 {
+                any_seq = true;
+            } else {
+                reference((self.addr_of_rank[child] << 3) | ((s - 1) & 7));
+            }
+        }
+        if any_seq {
+            let b = self
+                .addr_of_pos
+                .map_or(first, |a| a[usize::try_from(first).expect("a position")]);
+            reference(b);
+        }
+        mask
+    }
+
+    /// Appends the record of `key` (§23.2) to `out`.
+    fn write(&self, key: &NodeKey, first: u64, widths: [u8; 3], out: &mut Vec<u8>) {
+        let code_of = |v: u64| -> (u8, u32) {
+            let b = bits_of(v);
+            let i = widths
+                .iter()
+                .position(|&w| u32::from(w) >= b)
+                .expect("the widest holds all");
+            (i as u8 + 1, u32::from(widths[i]))
+        };
+        // The shared references in slot order, then the base reference.
+        let mut refs = [0u64; 9];
+        let mut n = 0usize;
+        let mask = self.record(key, first, |v| {
+            refs[n] = v;
+            n += 1;
+        });
+        let header = u32::from(mask) | (key.attribute << 8);
+        out.extend_from_slice(&header.to_le_bytes());
+        let mut w = BitWriter::new(out);
+        let mut next = 0usize;
+        for &s in &key.slots {
+            if s == 0 {
+                continue;
+            }
+            if self.counts[((s - 1) >> 3) as usize] == 1 {
+                w.put(0, 2);
+            } else {
+                w.put(u64::from(code_of(refs[next]).0), 2);
+                next += 1;
+            }
+        }
+        if next < n {
+            // The base reference's code follows the children's.
+            w.put(u64::from(code_of(refs[next]).0), 2);
+        }
+        for &v in &refs[..n] {
+            w.put(v, code_of(v).1);
+        }
+        w.finish();
+    }
+}
+
+/// The leaves, merged and ranked: the canonical masks in rank order, their
+/// stabilisers, and each 1.0 leaf's slot value.
+#[allow(clippy::type_complexity)]
+fn merge_leaves(
+    dag: &Dag<'_>,
+    leaf_level: usize,
+) -> Result<(Vec<u64>, Vec<u8>, Vec<AtomicU64>), FormatError> {
+    let n = dag.levels()[leaf_level].node_count;
+    let n32 = u32::try_from(n).map_err(|_| {
+        FormatError::new(
+            ErrorCode::LevelTooLarge,
+            0,
+            format!("{n} leaves are more than the encoder numbers"),
+        )
+    })?;
+    // A root that is a leaf is stored as it is (§23.6).
+    let reflect = leaf_level > 0;
+    let mut forms: Vec<(u64, u32, u8)> = (0..n32)
+        .into_par_iter()
+        .map(|i| {
+            let mask = dag.leaf(i)?.0;
+            let mut best = (mask, i, 0u8);
+            if reflect {
+                for r in 1..8u8 {
+                    let m = reflect_leaf(mask, r);
+                    if m < best.0 {
+                        best = (m, i, r);
+                    }
+                }
+            }
+            Ok(best)
+        })
+        .collect::<Result<_, FormatError>>()?;
+    forms.par_sort_unstable_by_key(|f| f.0);
+    let slot_at: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(0)).collect();
+    let (leaves, stabs) = rank_sorted(
+        &forms,
+        |a, b| a.0 == b.0,
+        |f| (f.0, leaf_stab(f.0)),
+        |&(_, i, r), rank, &(_, stab)| {
+            slot_at[i as usize].store(slot_value(rank, norm(r, stab)), Ordering::Relaxed);
+        },
+    );
+    Ok((leaves, stabs, slot_at))
+}
+
+/// Numbers the classes of `forms`, sorted so that equal forms (`same`) are
+/// adjacent, by their order: returns each class's two parts made by `class`
+/// from its first form, in rank order, and calls `assign` with each form,
+/// the rank of its class and the class's parts. In parallel chunks (the
+/// ranks at each chunk's start counted first); the result does not depend
+/// on the chunks.
+fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
+    forms: &[F],
+    same: impl Fn(&F, &F) -> bool + Sync,
+    class: impl Fn(&F) -> (A, B) + Sync,
+    assign: impl Fn(&F, usize, &(A, B)) + Sync,
+) -> (Vec<A>, Vec<B>) {
+    let starts_class = |i: usize| i == 0 || !same(&forms[i - 1], &forms[i]);
+    let new_classes: Vec<usize> = forms
+        .par_chunks(LAYOUT_CHUNK)
+        .enumerate()
+        .map(|(ci, chunk)| {
+            (0..chunk.len())
+                .filter(|&j| starts_class(ci * LAYOUT_CHUNK + j))
+                .count()
+        })
+        .collect();
+    let mut first_rank = Vec::with_capacity(new_classes.len());
+    let mut total = 0usize;
+    for n in &new_classes {
+        first_rank.push(total);
+        total += n;
+    }
+    let parts: Vec<(Vec<A>, Vec<B>)> = forms
+        .par_chunks(LAYOUT_CHUNK)
+        .enumerate()
+        .map(|(ci, chunk)| {
+            let mut a = Vec::with_capacity(new_classes[ci]);
+            let mut b = Vec::with_capacity(new_classes[ci]);
+            // The class of the form before the chunk continues into it.
+            let mut rank = first_rank[ci].wrapping_sub(1);
+            let mut current = (ci > 0).then(|| class(&forms[ci * LAYOUT_CHUNK - 1]));
+            for (j, f) in chunk.iter().enumerate() {
+                if starts_class(ci * LAYOUT_CHUNK + j) {
+                    rank = rank.wrapping_add(1);
+                    let parts = class(f);
+                    a.push(parts.0);
+                    b.push(parts.1);
+                    current = Some(parts);
+                }
+                assign(f, rank, current.as_ref().expect("a class started"));
+            }
+            (a, b)
+        })
+        .collect();
+    let mut a = Vec::with_capacity(total);
+    let mut b = Vec::with_capacity(total);
+    for (pa, pb) in parts {
+        a.extend_from_slice(&pa);
+        b.extend_from_slice(&pb);
+    }
+    (a, b)
+}
+
+/// Interior level `level`, merged and ranked through `slot_at` (the slot
+/// value of each 1.0 node of the level below by its word, or of each leaf by
+/// its index; 0 where none starts) and the stabilisers of the classes
+/// below (`child_stabs`, by rank): the ranked keys, their stabilisers, and
+/// the slot value of each 1.0 node of this level by its word.
+#[allow(clippy::type_complexity)]
+fn merge_level(
+    dag: &Dag<'_>,
+    level: usize,
+    slot_at: &[AtomicU64],
+    child_stabs: &[u8],
+) -> Result<(Vec<NodeKey>, Vec<u8>, Vec<AtomicU64>), FormatError> {
+    let section = &dag.levels()[level];
+    let units = section.units();
+    let level8 = level as u8;
+    // The node starts: each record's size is in its header.
+    let mut starts: Vec<u32> = Vec::with_capacity(section.node_count as usize);
+    let mut word = 0u64;
+    while word < units {
+        let w = u32::try_from(word).expect("a 1.0 level has fewer than 2^32 words");
+        starts.push(w);
+        word += dag.node(level8, w)?.record_size() / 4;
+    }
+    let mut forms: Vec<Form> = starts
+        .par_iter()
+        .enumerate()
+        .map(|(i, &w)| {
+            let node = dag.node(level8, w)?;
+            let mut key = NodeKey {
+                slots: [0; 8],
+                attribute: node.attribute(),
+            };
+            let mut rank = 0;
+            for slot in 0..8u32 {
+                if node.child_mask() >> slot & 1 != 0 {
+                    let p = node.pointer_at(rank);
+                    rank += 1;
+                    let s = slot_at
+                        .get(p as usize)
+                        .map_or(0, |s| s.load(Ordering::Relaxed));
+                    if s == 0 {
+                        return Err(FormatError::new(
+                            ErrorCode::PointerOutOfRange,
+                            section.file_offset + u64::from(w) * 4,
+                            format!("level {level}: pointer {p} names no node"),
+                        ));
+                    }
+                    key.slots[slot as usize] = s;
+                }
+            }
+            if level == 0 {
+                // The root is stored as it is (§23.6).
+                return Ok(Form {
+                    key,
+                    node: i as u32,
+                    reflection: 0,
+                    stab: 1,
+                });
+            }
+            Ok(least_reflection(key, i as u32, child_stabs))
+        })
+        .collect::<Result<_, FormatError>>()?;
+    forms.par_sort_unstable_by(|a, b| a.key.cmp(&b.key));
+    // The level above reads these by word; the root has no level above.
+    let next_slot_at: Vec<AtomicU64> = (0..if level > 0 { units } else { 0 })
+        .map(|_| AtomicU64::new(0))
+        .collect();
+    let (keys, stabs) = rank_sorted(
+        &forms,
+        |a, b| a.key == b.key,
+        |f| (f.key, f.stab),
+        |f, rank, _| {
+            if level > 0 {
+                next_slot_at[starts[f.node as usize] as usize].store(
+                    slot_value(rank, norm(f.reflection, f.stab)),
+                    Ordering::Relaxed,
+                );
+            }
+        },
+    );
+    Ok((keys, stabs, next_slot_at))
+}
+
+/// The least of the 8 reflected forms of `key` (the first reflection
+/// reaching it on ties), as the form of 1.0 node `node`; `child_stabs` are
+/// the stabilisers of the classes below, by rank.
+fn least_reflection(key: NodeKey, node: u32, child_stabs: &[u8]) -> Form {
+    // Slot j of form r holds the child at slot j ^ r.
+    let (best, ties) = least_form(8, |r, j| {
+        let s = key.slots[usize::from(j ^ r)];
+        if s == 0 {
+            return 0;
+        }
+        let rank = (s - 1) >> 3;
+        let t = norm(((s - 1) & 7) as u8 ^ r, child_stabs[rank as usize]);
+        1 + (rank << 3) + u64::from(t)
+    });
+    let mut stab = 0u8;
+    for r in 0..8u8 {
+        if ties >> r & 1 != 0 {
+            stab |= 1 << (r ^ best);
+        }
+    }
+    Form {
+        key: reflect_key(&key, best, child_stabs),
+        node,
+        reflection: best,
+        stab,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::AttributeKind;
+    use crate::builder::DagBuilder;
+    use proptest::prelude::*;
+
+    /// Voxels with mirrored solid blocks: shared, symmetric subtrees.
+    fn scene(depth: u8, voxels: &[(u32, u32, u32)], blocks: &[(u32, u32, u32)]) -> Vec<[u32; 3]> {
+        let res = 1u32 << depth;
+        let mut vs: Vec<[u32; 3]> = voxels
+            .iter()
+            .map(|&(x, y, z)| [x % res, y % res, z % res])
+            .collect();
+        for &(bx, by, bz) in blocks {
+            for d in 0..4 {
+                vs.push([(bx * 4 + d) % res, (by * 4) % res, (bz * 4 + d) % res]);
+                vs.push([
+                    res - 1 - (bx * 4 + d) % res,
+                    (by * 4) % res,
+                    (bz * 4 + d) % res,
+                ]);
+                vs.push([(bx * 4 + d) % res, res - 1 - (by * 4) % res, (bz * 4) % res]);
+            }
+        }
+        vs
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        // The parallel encoder writes the reference encoder's bytes, on one
+        // thread or several, in memory or with every table spilled; and the
+        // streamed file is `upgrade`'s.
+        #[test]
+        fn parallel_spilled_and_serial_encodings_are_equal(
+            depth in 2u8..=7,
+            voxels in proptest::collection::vec((0u32..128, 0u32..128, 0u32..128), 0..600),
+            blocks in proptest::collection::vec((0u32..16, 0u32..16, 0u32..16), 0..8),
+            kind in prop_oneof![Just(AttributeKind::VoxelCount), Just(AttributeKind::None)],
+        ) {
+            let vs = scene(depth, &voxels, &blocks);
+            let bytes = DagBuilder::from_voxels(depth, kind, vs).unwrap().to_bytes();
+            let dag = Dag::open(&bytes).unwrap();
+            let serial = crate::v2::encode_serial(&dag).unwrap();
+            prop_assert_eq!(&crate::v2::encode(&dag).unwrap(), &serial);
+            let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+            let three_threads = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+            for pool in [&one_thread, &three_threads] {
+                prop_assert_eq!(&pool.install(|| crate::v2::encode(&dag)).unwrap(), &serial);
+            }
+            let dir = tempfile::tempdir().unwrap();
+            let spill_all = EncodeOptions {
+                memory_budget: Some(0),
+                scratch_dir: Some(dir.path().to_path_buf()),
+            };
+            let spilled = encode_levels(&dag, &spill_all).unwrap();
+            prop_assert_eq!(spilled.spilled_bytes() > 0, !dag.is_empty());
+            prop_assert_eq!(&spilled.into_encoded().unwrap(), &serial);
+            let upgraded = crate::v2file::upgrade(&dag).unwrap();
+            let mut streamed = Vec::new();
+            crate::v2file::upgrade_to(&dag, &spill_all, &mut streamed).unwrap();
+            prop_assert_eq!(streamed, upgraded);
+            // The scratch file is unnamed: nothing is left in its directory.
+            prop_assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        }
+    }
+
+    #[test]
+    fn a_budget_between_nothing_and_everything_spills_some_tables() {
+        let vs = scene(
+            7,
+            &[(3, 9, 100), (50, 60, 70), (127, 0, 64)],
+            &[(1, 2, 3), (9, 9, 9), (15, 0, 7)],
+        );
+        let bytes = DagBuilder::from_voxels(7, AttributeKind::VoxelCount, vs)
+            .unwrap()
+            .to_bytes();
+        let dag = Dag::open(&bytes).unwrap();
+        let serial = crate::v2::encode_serial(&dag).unwrap();
+        let all = encode_levels(&dag, &EncodeOptions::default()).unwrap();
+        assert_eq!(all.spilled_bytes(), 0);
+        let dir = tempfile::tempdir().unwrap();
+        let everything = encode_levels(
+            &dag,
+            &EncodeOptions {
+                memory_budget: Some(0),
+                scratch_dir: Some(dir.path().to_path_buf()),
+            },
+        )
+        .unwrap()
+        .spilled_bytes();
+        // The working set of the largest level, plus room for a few tables.
+        let work = (0..dag.levels().len())
+            .map(|l| {
+                let s = &dag.levels()[l];
+                let below = dag.levels().get(l + 1).map_or(0, |b| b.units());
+                s.node_count * WORK_BYTES_PER_NODE + 8 * (s.units() + below)
+            })
+            .max()
+            .unwrap();
+        let some = encode_levels(
+            &dag,
+            &EncodeOptions {
+                memory_budget: Some(work + everything / 3),
+                scratch_dir: Some(dir.path().to_path_buf()),
+            },
+        )
+        .unwrap();
+        assert!(
+            some.spilled_bytes() > 0 && some.spilled_bytes() < everything,
+            "{} of {everything}",
+            some.spilled_bytes()
+        );
+        assert_eq!(some.into_encoded().unwrap(), serial);
+    }
+}

@@ -656,7 +656,15 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     inner.output = temp.path().to_path_buf();
     inner.force = true;
     inner.format_version = 1;
-    let mut summary = convert_v1(&inner)?;
+    // The 1.0 stage's errors name the output the user asked for, not the
+    // hidden temporary file (a write error there is one writing the output).
+    let mut summary = convert_v1(&inner).map_err(|e| match e {
+        ConvertError::Io(m) => ConvertError::Io(m.replace(
+            &temp.path().display().to_string(),
+            &format!("{} (its 1.0 stage)", opts.output.display()),
+        )),
+        other => other,
+    })?;
     let start = Instant::now();
     let map = dagfmt::mmap::MappedFile::open(temp.path())
         .map_err(|e| ConvertError::io("cannot read back the 1.0 file", e))?;

@@ -21,7 +21,7 @@
 //!    chunks and joined in order.
 //!
 //! Every table a later pass needs (ranked keys, stabilisers, counts, the
-//! stored order, the finished level bytes) goes through a [`Store`]: in
+//! stored order, the finished level bytes) goes through a `Store`: in
 //! memory while the tables held fit the budget, else appended to one unnamed
 //! scratch file and read back when its pass comes. Spilling changes where the
 //! tables are, never what they hold, so the output does not depend on the

@@ -33,7 +33,7 @@
 //! file's voxels and a byte comparison would give (the conformance tests
 //! check this against that rebuild).
 
-use crate::symmetry::{NodeKey, least_form, reflect_leaf};
+use crate::symmetry::{NodeKey, reflect_leaf};
 use crate::v2::{self, Child, LevelView, norm, reflect_key};
 use rayon::prelude::*;
 
@@ -233,27 +233,6 @@ fn stored_key(header: u32, children: &Children, below: &Ranked) -> NodeKey {
     key
 }
 
-/// The least of the 8 reflected forms of `key` (§23.6): the form, the least
-/// reflection reaching it and the class's symmetry group.
-fn least_key(key: &NodeKey, below_group: &[u8]) -> (NodeKey, u8, u8) {
-    let (best, ties) = least_form(8, |r, j| {
-        let s = key.slots[usize::from(j ^ r)];
-        if s == 0 {
-            return 0;
-        }
-        let rank = (s - 1) >> 3;
-        let t = norm(((s - 1) & 7) as u8 ^ r, below_group[rank as usize]);
-        1 + (rank << 3) + u64::from(t)
-    });
-    let mut group = 0u8;
-    for r in 0..8u8 {
-        if ties >> r & 1 != 0 {
-            group |= 1 << (r ^ best);
-        }
-    }
-    (reflect_key(key, best, below_group), best, group)
-}
-
 /// Ranks interior level `l` (the root, l = 0, is its own canonical member:
 /// §23.6). `None` when a record does not decode (steps 1 – 3 rule it out).
 fn rank_nodes(
@@ -270,7 +249,7 @@ fn rank_nodes(
             Some(if is_root {
                 (key, 0, 1)
             } else {
-                least_key(&key, &below_ranked.group)
+                v2::least_reflected_key(&key, &below_ranked.group)
             })
         })
         .collect::<Option<_>>()?;

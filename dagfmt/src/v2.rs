@@ -430,6 +430,32 @@ pub(crate) fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
     out
 }
 
+/// The least of the 8 reflected forms of `key` (§23.6), with the first
+/// reflection reaching it on ties (the same one turns the least form back
+/// into `key`) and the symmetry group of the class (the reflections that
+/// fix the least form); `child_stab` are the groups of the classes below,
+/// by rank. The encoder ([`crate::v2enc`]) and the validator's canonical
+/// check ([`crate::canonical2`]) both rank nodes by it.
+pub(crate) fn least_reflected_key(key: &Key, child_stab: &[u8]) -> (Key, u8, u8) {
+    // Slot j of form r holds the child at slot j ^ r.
+    let (best, ties) = least_form(8, |r, j| {
+        let s = key.slots[usize::from(j ^ r)];
+        if s == 0 {
+            return 0;
+        }
+        let rank = (s - 1) >> 3;
+        let t = norm(((s - 1) & 7) as u8 ^ r, child_stab[rank as usize]);
+        1 + (rank << 3) + u64::from(t)
+    });
+    let mut group = 0u8;
+    for r in 0..8u8 {
+        if ties >> r & 1 != 0 {
+            group |= 1 << (r ^ best);
+        }
+    }
+    (reflect_key(key, best, child_stab), best, group)
+}
+
 /// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), in
 /// memory, on the threads of the current rayon pool
 /// ([`crate::v2enc::encode_levels`] without a memory budget; the bytes of

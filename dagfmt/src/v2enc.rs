@@ -37,7 +37,7 @@ use rayon::prelude::*;
 
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::Dag;
-use crate::symmetry::{NodeKey, least_form, reflect_leaf};
+use crate::symmetry::{NodeKey, reflect_leaf};
 use crate::v2::{BitWriter, Encoded, EncodedLevel, best_widths, norm, reflect_key};
 use crate::v2file::ConvertError;
 
@@ -887,26 +887,11 @@ fn merge_level(
 /// reaching it on ties), as the form of 1.0 node `node`; `child_stabs` are
 /// the stabilisers of the classes below, by rank.
 fn least_reflection(key: NodeKey, node: u32, child_stabs: &[u8]) -> Form {
-    // Slot j of form r holds the child at slot j ^ r.
-    let (best, ties) = least_form(8, |r, j| {
-        let s = key.slots[usize::from(j ^ r)];
-        if s == 0 {
-            return 0;
-        }
-        let rank = (s - 1) >> 3;
-        let t = norm(((s - 1) & 7) as u8 ^ r, child_stabs[rank as usize]);
-        1 + (rank << 3) + u64::from(t)
-    });
-    let mut stab = 0u8;
-    for r in 0..8u8 {
-        if ties >> r & 1 != 0 {
-            stab |= 1 << (r ^ best);
-        }
-    }
+    let (key, reflection, stab) = crate::v2::least_reflected_key(&key, child_stabs);
     Form {
-        key: reflect_key(&key, best, child_stabs),
+        key,
         node,
-        reflection: best,
+        reflection,
         stab,
     }
 }

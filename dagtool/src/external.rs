@@ -1227,15 +1227,7 @@ impl RunMerge {
         self.end_run()?;
         let t = std::time::Instant::now();
         if self.files.runs.is_empty() {
-            // No voxels: the empty volume, as an in-memory build makes it.
-            let built = DagBuilder::new(self.depth, self.attributes)
-                .and_then(DagBuilder::finish)
-                .map_err(build_error)?;
-            return Ok(FinishedDag {
-                inner: Inner::InCore(built),
-                cells: Vec::new(),
-                report: SpillReport::default(),
-            });
+            return FinishedDag::empty_volume(self.depth, self.attributes);
         }
         let RunMerge {
             depth,
@@ -1931,14 +1923,7 @@ impl MemoryMerge {
     pub fn finish(self) -> Result<FinishedDag, ConvertError> {
         let t = std::time::Instant::now();
         if self.roots.is_empty() {
-            let built = DagBuilder::new(self.depth, self.attributes)
-                .and_then(DagBuilder::finish)
-                .map_err(build_error)?;
-            return Ok(FinishedDag {
-                inner: Inner::InCore(built),
-                cells: Vec::new(),
-                report: SpillReport::default(),
-            });
+            return FinishedDag::empty_volume(self.depth, self.attributes);
         }
         let MemoryMerge {
             depth,
@@ -2178,6 +2163,19 @@ pub struct FinishedDag {
 }
 
 impl FinishedDag {
+    /// The empty volume (no voxels), as an in-memory build makes it: what a
+    /// merge of no runs or no parts' roots finishes with.
+    fn empty_volume(depth: u8, attributes: AttributeKind) -> Result<FinishedDag, ConvertError> {
+        let built = DagBuilder::new(depth, attributes)
+            .and_then(DagBuilder::finish)
+            .map_err(build_error)?;
+        Ok(FinishedDag {
+            inner: Inner::InCore(built),
+            cells: Vec::new(),
+            report: SpillReport::default(),
+        })
+    }
+
     /// Set voxels.
     pub fn voxel_count(&self) -> u64 {
         match &self.inner {

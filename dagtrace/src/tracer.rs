@@ -680,28 +680,8 @@ mod tests {
                 continue;
             };
             let rays = rays(&mut rng, 40);
-            for lanes in [Lanes::Eight, Lanes::Sixteen] {
-                let tracer = tracer.clone().with_lanes(lanes);
-                for ray in &rays {
-                    let mut hit = [Hit::MISS];
-                    let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
-                    match (tracer.trace(ray), batch) {
-                        (Ok(single), Ok(())) => assert_eq!(single, hit[0], "{lanes:?}: {ray:?}"),
-                        (Err(a), Err(b)) => {
-                            assert_eq!(a, b);
-                            errors += 1;
-                        }
-                        (a, b) => panic!("{lanes:?}: single {a:?}, batch {b:?}"),
-                    }
-                }
-                let mut hits = vec![Hit::MISS; rays.len()];
-                let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
-                assert_eq!(
-                    tracer.trace_sequential_into(&rays, &mut hits).is_err(),
-                    any_error
-                );
-                traced += 1;
-            }
+            errors += malformed_lanes_agree_with_single_rays(&tracer, &rays);
+            traced += 2;
         }
         assert!(
             traced > 100 && errors > 0,
@@ -728,34 +708,40 @@ mod tests {
                 continue;
             };
             let rays = rays(&mut rng, 40);
-            // Eight and (where the processor has AVX-512) sixteen lanes.
-            for lanes in [Lanes::Eight, Lanes::Sixteen] {
-                let tracer = tracer.clone().with_lanes(lanes);
-                // Ray by ray: the same answer or the same error.
-                for ray in &rays {
-                    let mut hit = [Hit::MISS];
-                    let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
-                    match (tracer.trace(ray), batch) {
-                        (Ok(single), Ok(())) => assert_eq!(single, hit[0]),
-                        (Err(a), Err(b)) => {
-                            assert_eq!(a, b);
-                            errors += 1;
-                        }
-                        (a, b) => panic!("single {a:?}, batch {b:?}"),
-                    }
-                }
-                // A whole batch fails exactly when one of its rays does.
-                let mut hits = vec![Hit::MISS; rays.len()];
-                let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
-                assert_eq!(
-                    tracer.trace_sequential_into(&rays, &mut hits).is_err(),
-                    any_error
-                );
-            }
+            errors += malformed_lanes_agree_with_single_rays(&tracer, &rays);
         }
         assert!(
             errors > 0,
             "some corruption must lead a pointer out of range"
         );
+    }
+
+    /// In eight and (where the processor has AVX-512) sixteen lanes, each ray
+    /// of a batch gets the answer or the error of a single ray, and a whole
+    /// batch fails exactly when one of its rays does. Returns the errors seen.
+    fn malformed_lanes_agree_with_single_rays(tracer: &Tracer<'_>, rays: &[Ray]) -> usize {
+        let mut errors = 0;
+        for lanes in [Lanes::Eight, Lanes::Sixteen] {
+            let tracer = tracer.clone().with_lanes(lanes);
+            for ray in rays {
+                let mut hit = [Hit::MISS];
+                let batch = tracer.trace_sequential_into(std::slice::from_ref(ray), &mut hit);
+                match (tracer.trace(ray), batch) {
+                    (Ok(single), Ok(())) => assert_eq!(single, hit[0], "{lanes:?}: {ray:?}"),
+                    (Err(a), Err(b)) => {
+                        assert_eq!(a, b);
+                        errors += 1;
+                    }
+                    (a, b) => panic!("{lanes:?}: single {a:?}, batch {b:?}"),
+                }
+            }
+            let mut hits = vec![Hit::MISS; rays.len()];
+            let any_error = rays.iter().any(|r| tracer.trace(r).is_err());
+            assert_eq!(
+                tracer.trace_sequential_into(rays, &mut hits).is_err(),
+                any_error
+            );
+        }
+        errors
     }
 }

@@ -32,6 +32,7 @@ pub mod batch;
 pub mod builder;
 mod canonical2;
 pub mod error;
+pub mod expand;
 #[doc(hidden)]
 pub mod fuzzing;
 pub mod layout;

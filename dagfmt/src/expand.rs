@@ -44,15 +44,22 @@ pub struct ExpandedLevel {
 /// gives them); the result has one entry per node level, in the same order.
 /// Fails (without panicking, on any bytes) where a level does not decode
 /// completely or an index does not fit in 29 bits (see the module docs);
-/// the error names the level's byte that stopped it.
+/// the error names the level's byte that stopped it (the first such byte
+/// in the level's record order, whatever the number of threads).
+///
+/// Each level is framed once (its records' sizes, from byte 0), then its
+/// records are expanded in chunks on every core; a reference finds its
+/// child's record by a rank over the child level's record starts.
 pub fn expand_levels(levels: &[LevelView<'_>]) -> Result<Vec<ExpandedLevel>, FormatError> {
+    use rayon::prelude::*;
     let nodes = levels.iter().take_while(|l| !l.is_leaf).count();
-    // Each node level's record starts (byte offsets, in order) and the
-    // expanded word index of each record.
-    let mut chains = Vec::with_capacity(nodes);
-    for (depth, view) in levels[..nodes].iter().enumerate() {
-        chains.push(record_chain(view, depth)?);
-    }
+    // Framed side by side; the first failing level in order is reported.
+    let chains: Vec<Result<Chain, FormatError>> = levels[..nodes]
+        .par_iter()
+        .enumerate()
+        .map(|(depth, view)| record_chain(view, depth))
+        .collect();
+    let chains = chains.into_iter().collect::<Result<Vec<_>, _>>()?;
     let leaf_count = levels.get(nodes).map(|l| l.bytes.len() as u64 / 8);
     let mut out = Vec::with_capacity(nodes);
     for depth in 0..nodes {
@@ -60,62 +67,102 @@ pub fn expand_levels(levels: &[LevelView<'_>]) -> Result<Vec<ExpandedLevel>, For
         let chain = &chains[depth];
         let coding = level_coding(view, depth)?;
         let child = chains.get(depth + 1);
-        let mut words = Vec::with_capacity(chain.words as usize);
-        for &offset in &chain.starts {
-            let codes = coding
-                .codes(view.bytes, offset)
-                .ok_or_else(|| stop(depth, offset, "its record runs past the level's end"))?;
-            words.push(codes.header);
-            let mask = codes.child_mask();
-            for slot in 0..8u32 {
-                if mask >> slot & 1 == 0 {
-                    continue;
-                }
-                let found = coding
-                    .child(view.bytes, offset, &codes, slot)
-                    .ok_or_else(|| stop(depth, offset, "its record runs past the level's end"))?;
-                let (target, reflection) = match found {
-                    Child::Shared { target, reflection } => (target, reflection),
-                    Child::Sequential { base, index } => match child {
-                        // Sequential leaves are consecutive leaf indices.
-                        None => (base.saturating_add(u64::from(index)), 0),
-                        // The `index`-th record after the base's.
-                        Some(c) => {
-                            let at = c.ordinal(base).ok_or_else(|| {
-                                stop(depth, offset, "a base reference names no record start")
-                            })?;
-                            let ordinal = at + u64::from(index);
-                            let start = *c.starts.get(ordinal as usize).ok_or_else(|| {
-                                stop(depth, offset, "a sequential child lies past the level")
-                            })?;
-                            (start, 0)
-                        }
-                    },
-                };
-                let index = match child {
-                    None => match leaf_count {
-                        Some(n) if target < n => target,
-                        _ => return Err(stop(depth, offset, "a reference names no leaf")),
-                    },
-                    Some(c) => {
-                        let ordinal = c.ordinal(target).ok_or_else(|| {
-                            stop(depth, offset, "a reference names no record start")
-                        })?;
-                        c.first_word[ordinal as usize]
-                    }
-                };
-                if index > MAX_INDEX {
-                    return Err(stop(depth, offset, "an index does not fit in 29 bits"));
-                }
-                words.push((index as u32) << 3 | u32::from(reflection));
-            }
+        let mut words = vec![0u32; chain.words as usize];
+        // Disjoint pieces of `words`, one per chunk of records.
+        let mut pieces = Vec::with_capacity(chain.chunks.len());
+        let mut rest = words.as_mut_slice();
+        for (i, &(ordinal, _)) in chain.chunks.iter().enumerate() {
+            let end = chain.chunks.get(i + 1).map_or(chain.words, |&(o, _)| {
+                u64::from(chain.first_word[o as usize])
+            });
+            let begin = u64::from(chain.first_word[ordinal as usize]);
+            let (piece, tail) = rest.split_at_mut((end - begin) as usize);
+            pieces.push(piece);
+            rest = tail;
         }
+        let expand_chunk = |(i, piece): (usize, &mut [u32])| -> Result<(), FormatError> {
+            let (first, mut offset) = chain.chunks[i];
+            let last = chain.chunks.get(i + 1).map_or(chain.records(), |&(o, _)| o);
+            let mut w = 0usize;
+            for _ in first..last {
+                let codes = coding
+                    .codes(view.bytes, offset)
+                    .ok_or_else(|| stop(depth, offset, "its record runs past the level's end"))?;
+                piece[w] = codes.header;
+                w += 1;
+                let mask = codes.child_mask();
+                for slot in 0..8u32 {
+                    if mask >> slot & 1 == 0 {
+                        continue;
+                    }
+                    let found =
+                        coding
+                            .child(view.bytes, offset, &codes, slot)
+                            .ok_or_else(|| {
+                                stop(depth, offset, "its record runs past the level's end")
+                            })?;
+                    piece[w] = reference_word(found, child, leaf_count, depth, offset)?;
+                    w += 1;
+                }
+                offset += coding.size(&codes);
+            }
+            Ok(())
+        };
+        // Every chunk runs; the first error in record order is reported.
+        let results: Vec<Result<(), FormatError>> = pieces
+            .into_par_iter()
+            .enumerate()
+            .map(expand_chunk)
+            .collect();
+        results.into_iter().collect::<Result<(), _>>()?;
         out.push(ExpandedLevel {
             words,
-            records: chain.starts.len() as u64,
+            records: chain.records(),
         });
     }
     Ok(out)
+}
+
+/// The expanded word of a child found at a record at byte `offset` of node
+/// level `depth`, whose child level is framed by `child` (`None`: the leaf
+/// level, of `leaf_count` leaves).
+fn reference_word(
+    found: Child,
+    child: Option<&Chain>,
+    leaf_count: Option<u64>,
+    depth: usize,
+    offset: u64,
+) -> Result<u32, FormatError> {
+    let (index, reflection) = match (found, child) {
+        (Child::Shared { target, reflection }, None) => (target, reflection),
+        // Sequential leaves are consecutive leaf indices.
+        (Child::Sequential { base, index }, None) => (base.saturating_add(u64::from(index)), 0),
+        (Child::Shared { target, reflection }, Some(c)) => {
+            let ordinal = c
+                .ordinal(target)
+                .ok_or_else(|| stop(depth, offset, "a reference names no record start"))?;
+            (u64::from(c.first_word[ordinal as usize]), reflection)
+        }
+        // The `index`-th record after the base's.
+        (Child::Sequential { base, index }, Some(c)) => {
+            let ordinal = c
+                .ordinal(base)
+                .ok_or_else(|| stop(depth, offset, "a base reference names no record start"))?
+                + u64::from(index);
+            let word = c
+                .first_word
+                .get(ordinal as usize)
+                .ok_or_else(|| stop(depth, offset, "a sequential child lies past the level"))?;
+            (u64::from(*word), 0)
+        }
+    };
+    if child.is_none() && leaf_count.is_none_or(|n| index >= n) {
+        return Err(stop(depth, offset, "a reference names no leaf"));
+    }
+    if index > MAX_INDEX {
+        return Err(stop(depth, offset, "an index does not fit in 29 bits"));
+    }
+    Ok((index as u32) << 3 | u32::from(reflection))
 }
 
 /// The coding of node level `depth`; the empty root level of an empty DAG
@@ -127,20 +174,40 @@ fn level_coding(view: &LevelView<'_>, depth: usize) -> Result<Coding, FormatErro
     Coding::new(view.widths).map_err(|e| stop(depth, 0, &e.message))
 }
 
-/// A node level's record starts and where each record begins when expanded.
+/// Records a chunk of the parallel expansion holds.
+const CHUNK_RECORDS: u64 = 1 << 14;
+
+/// A node level framed: where its records start and where each begins when
+/// expanded.
 struct Chain {
-    /// Byte offsets of the records, increasing.
+    /// Bit `b` set where a record starts at byte `b`.
     starts: Vec<u64>,
+    /// Records starting before each word of `starts` (a rank directory).
+    before: Vec<u64>,
     /// The expanded word index of each record.
-    first_word: Vec<u64>,
+    first_word: Vec<u32>,
     /// Words of the expanded level.
     words: u64,
+    /// Each chunk's first record: its ordinal and byte offset.
+    chunks: Vec<(u64, u64)>,
 }
 
 impl Chain {
+    /// Records in the level.
+    fn records(&self) -> u64 {
+        self.first_word.len() as u64
+    }
+
     /// The ordinal of the record starting at byte `offset`, if one does.
+    #[inline]
     fn ordinal(&self, offset: u64) -> Option<u64> {
-        self.starts.binary_search(&offset).ok().map(|i| i as u64)
+        let word = usize::try_from(offset / 64).ok()?;
+        let bits = *self.starts.get(word)?;
+        let bit = offset % 64;
+        if bits >> bit & 1 == 0 {
+            return None;
+        }
+        Some(self.before[word] + u64::from((bits & ((1u64 << bit) - 1)).count_ones()))
     }
 }
 
@@ -148,8 +215,9 @@ impl Chain {
 fn record_chain(view: &LevelView<'_>, depth: usize) -> Result<Chain, FormatError> {
     let coding = level_coding(view, depth)?;
     let len = view.bytes.len() as u64;
-    let mut starts = Vec::new();
+    let mut starts = vec![0u64; len.div_ceil(64) as usize];
     let mut first_word = Vec::new();
+    let mut chunks = Vec::new();
     let mut at = 0u64;
     let mut words = 0u64;
     while at < len {
@@ -160,18 +228,33 @@ fn record_chain(view: &LevelView<'_>, depth: usize) -> Result<Chain, FormatError
         if at + size > len {
             return Err(stop(depth, at, "its record runs past the level's end"));
         }
-        starts.push(at);
-        first_word.push(words);
+        if words > MAX_INDEX {
+            return Err(stop(depth, at, "the expanded level is over 2^29 words"));
+        }
+        let ordinal = first_word.len() as u64;
+        if ordinal % CHUNK_RECORDS == 0 {
+            chunks.push((ordinal, at));
+        }
+        starts[(at / 64) as usize] |= 1 << (at % 64);
+        first_word.push(words as u32);
         words += 1 + u64::from(codes.child_mask().count_ones());
         at += size;
     }
     if words > MAX_INDEX + 1 {
         return Err(stop(depth, 0, "the expanded level is over 2^29 words"));
     }
+    let mut before = Vec::with_capacity(starts.len());
+    let mut count = 0u64;
+    for bits in &starts {
+        before.push(count);
+        count += u64::from(bits.count_ones());
+    }
     Ok(Chain {
         starts,
+        before,
         first_word,
         words,
+        chunks,
     })
 }
 

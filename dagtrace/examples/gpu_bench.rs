@@ -22,11 +22,14 @@
 //! ```
 //!
 //! compares the GPU trace rates of a format 1.0 file and the 2.0 file of the
-//! same voxels (`dagtool convert --format-version 2`, or `dagtool upgrade`):
+//! same voxels (`dagtool convert --format-version 2`, or `dagtool upgrade`),
+//! the latter uploaded expanded (spec §23.12, the default) and in place:
 //! the same random rays (batch path, no attribute index) and primary rays,
-//! full and short (4) stacks, run by run interleaved (1.0, then 2.0, per
-//! run); prints the medians and the median of the per-run ratios 2.0 / 1.0
-//! of the rates, and checks that both give the same answers.
+//! full and short (4) stacks, run by run interleaved (1.0, then 2.0
+//! expanded, then 2.0 in place, per run); prints each tracer's set-up time,
+//! the expansion's time and the bytes uploaded, the medians and the median
+//! of the per-run ratios 2.0 / 1.0 of the rates, and checks first that all
+//! give the same answers.
 
 #[cfg(feature = "gpu")]
 fn main() {
@@ -51,7 +54,7 @@ mod bench {
     use dagfmt::mmap::MappedFile;
     use dagtrace::Tracer;
     use dagtrace::camera::Camera;
-    use dagtrace::gpu::{AdapterChoice, GpuContext, GpuOptions, GpuTracer, StackMode};
+    use dagtrace::gpu::{AdapterChoice, GpuContext, GpuOptions, GpuTracer, StackMode, V2Layout};
 
     struct Args {
         path: String,
@@ -174,7 +177,8 @@ mod bench {
     }
 
     /// `--compare-v2`: the GPU trace rates of the 1.0 file and the 2.0 file
-    /// of the same voxels, interleaved run by run.
+    /// of the same voxels, the latter expanded and in place, interleaved run
+    /// by run.
     fn compare_v2(args: &Args, path2: &str) -> Result<(), String> {
         let file1 =
             MappedFile::open(args.path.as_ref()).map_err(|e| format!("{}: {e}", args.path))?;
@@ -199,6 +203,10 @@ mod bench {
             header.root_size,
             f64::from(w) / f64::from(h),
         );
+        let layouts = [
+            ("2.0 expanded", V2Layout::Expanded),
+            ("2.0 in place", V2Layout::InPlace),
+        ];
         for (stack_name, stack) in [
             ("full stack", StackMode::Full),
             ("short stack (4)", StackMode::Short(4)),
@@ -209,74 +217,126 @@ mod bench {
                 rays_per_dispatch: args.chunk,
                 ..GpuOptions::default()
             };
+            let t0 = Instant::now();
             let one =
                 GpuTracer::with_context(&context, &dag1, &options).map_err(|e| e.to_string())?;
-            let two =
-                GpuTracer::with_context_v2(&context, dag2.header(), dag2.levels(), None, &options)
-                    .map_err(|e| e.to_string())?;
+            println!(
+                "{stack_name}: 1.0 tracer made in {:.1} ms, {} bytes uploaded",
+                t0.elapsed().as_secs_f64() * 1e3,
+                one.uploaded_bytes()
+            );
+            let mut twos = Vec::new();
+            for (name, v2_layout) in layouts {
+                let t0 = Instant::now();
+                let two = GpuTracer::with_context_v2(
+                    &context,
+                    dag2.header(),
+                    dag2.levels(),
+                    None,
+                    &GpuOptions {
+                        v2_layout,
+                        ..options.clone()
+                    },
+                )
+                .map_err(|e| e.to_string())?;
+                if two.v2_layout() != Some(v2_layout) {
+                    return Err(format!("{name}: the 2.0 levels did not expand"));
+                }
+                println!(
+                    "{stack_name}: {name} tracer made in {:.1} ms (expansion {}), {} bytes uploaded",
+                    t0.elapsed().as_secs_f64() * 1e3,
+                    two.expansion_time().map_or("none".to_string(), |t| format!(
+                        "{:.1} ms",
+                        t.as_secs_f64() * 1e3
+                    )),
+                    two.uploaded_bytes()
+                );
+                twos.push((name, two));
+            }
             // Warm-up (buffers, pipelines) and the answers, which must agree.
             let mut hits1 = vec![dagfmt::batch::Hit::MISS; rays.len()];
             let mut hits2 = hits1.clone();
             one.trace_into_with_stats(&rays, &mut hits1)
                 .map_err(|e| e.to_string())?;
-            two.trace_into_with_stats(&rays, &mut hits2)
-                .map_err(|e| e.to_string())?;
-            if hits1 != hits2 {
-                let n = hits1.iter().zip(&hits2).filter(|(a, b)| a != b).count();
-                return Err(format!(
-                    "{stack_name}: 2.0 answers differ from 1.0 on {n} rays"
-                ));
-            }
             one.time_render(&camera, w, h, 1)
                 .map_err(|e| e.to_string())?;
-            two.time_render(&camera, w, h, 1)
-                .map_err(|e| e.to_string())?;
-            let (mut r1, mut r2, mut rr) = (Vec::new(), Vec::new(), Vec::new());
-            let (mut c1, mut c2, mut cr) = (Vec::new(), Vec::new(), Vec::new());
+            for (name, two) in &twos {
+                two.trace_into_with_stats(&rays, &mut hits2)
+                    .map_err(|e| e.to_string())?;
+                if hits1 != hits2 {
+                    let n = hits1.iter().zip(&hits2).filter(|(a, b)| a != b).count();
+                    return Err(format!(
+                        "{stack_name}: {name} answers differ from 1.0 on {n} rays"
+                    ));
+                }
+                two.time_render(&camera, w, h, 1)
+                    .map_err(|e| e.to_string())?;
+            }
+            // Per run: 1.0, then each 2.0 layout; random rays, then camera rays.
+            let (mut r1, mut c1) = (Vec::new(), Vec::new());
+            let mut r2 = vec![Vec::new(); twos.len()];
+            let mut rr = vec![Vec::new(); twos.len()];
+            let mut c2 = vec![Vec::new(); twos.len()];
+            let mut cr = vec![Vec::new(); twos.len()];
             for _ in 0..args.runs {
                 let a = one
                     .trace_into_with_stats(&rays, &mut hits1)
                     .map_err(|e| e.to_string())?
                     .gpu_time;
-                let b = two
-                    .trace_into_with_stats(&rays, &mut hits2)
-                    .map_err(|e| e.to_string())?
-                    .gpu_time;
-                rr.push(a.as_secs_f64() / b.as_secs_f64());
                 r1.push(a);
-                r2.push(b);
+                for (i, (_, two)) in twos.iter().enumerate() {
+                    let b = two
+                        .trace_into_with_stats(&rays, &mut hits2)
+                        .map_err(|e| e.to_string())?
+                        .gpu_time;
+                    rr[i].push(a.as_secs_f64() / b.as_secs_f64());
+                    r2[i].push(b);
+                }
                 let a = one
                     .time_render(&camera, w, h, 1)
                     .map_err(|e| e.to_string())?[0];
-                let b = two
-                    .time_render(&camera, w, h, 1)
-                    .map_err(|e| e.to_string())?[0];
-                cr.push(a.as_secs_f64() / b.as_secs_f64());
                 c1.push(a);
-                c2.push(b);
+                for (i, (_, two)) in twos.iter().enumerate() {
+                    let b = two
+                        .time_render(&camera, w, h, 1)
+                        .map_err(|e| e.to_string())?[0];
+                    cr[i].push(a.as_secs_f64() / b.as_secs_f64());
+                    c2[i].push(b);
+                }
             }
             let median_f = |mut v: Vec<f64>| {
                 v.sort_by(f64::total_cmp);
                 v[v.len() / 2]
             };
+            let spread = |v: &[f64]| {
+                (
+                    v.iter().copied().fold(f64::INFINITY, f64::min),
+                    v.iter().copied().fold(0.0, f64::max),
+                )
+            };
             println!("{stack_name}, median of {} interleaved runs:", args.runs);
             println!(
-                "  random rays ({}): 1.0 {}, 2.0 {}; 2.0/1.0 rate {:.3} (per-run ratios {:.3} to {:.3})",
+                "  random rays ({}): 1.0 {}",
                 rays.len(),
-                rate(rays.len(), median(r1)),
-                rate(rays.len(), median(r2)),
-                median_f(rr.clone()),
-                rr.iter().copied().fold(f64::INFINITY, f64::min),
-                rr.iter().copied().fold(0.0, f64::max),
+                rate(rays.len(), median(r1))
             );
-            println!(
-                "  camera rays ({w}x{h}): 1.0 {}, 2.0 {}; 2.0/1.0 rate {:.3} (per-run ratios {:.3} to {:.3})",
-                rate(pixels, median(c1)),
-                rate(pixels, median(c2)),
-                median_f(cr.clone()),
-                cr.iter().copied().fold(f64::INFINITY, f64::min),
-                cr.iter().copied().fold(0.0, f64::max),
-            );
+            for (i, (name, _)) in twos.iter().enumerate() {
+                let (lo, hi) = spread(&rr[i]);
+                println!(
+                    "    {name} {}; rate / 1.0 {:.3} (per-run ratios {lo:.3} to {hi:.3})",
+                    rate(rays.len(), median(r2[i].clone())),
+                    median_f(rr[i].clone()),
+                );
+            }
+            println!("  camera rays ({w}x{h}): 1.0 {}", rate(pixels, median(c1)));
+            for (i, (name, _)) in twos.iter().enumerate() {
+                let (lo, hi) = spread(&cr[i]);
+                println!(
+                    "    {name} {}; rate / 1.0 {:.3} (per-run ratios {lo:.3} to {hi:.3})",
+                    rate(pixels, median(c2[i].clone())),
+                    median_f(cr[i].clone()),
+                );
+            }
         }
         Ok(())
     }

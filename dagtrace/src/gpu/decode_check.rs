@@ -12,6 +12,14 @@
 //! `node::logical_leaf`, over the records of random 2.0 DAGs and of the
 //! conformance cases upgraded with `dagfmt::v2file::upgrade`.
 //!
+//! The expanded form of a 2.0 DAG (spec §23.12, `dagfmt::expand`: the
+//! shader's default for 2.0) is checked the same way: `node_mask`,
+//! `node_attribute` and `child_entry` of the expanded variant, run on the
+//! device, give for every record the header, the child (its record's word
+//! index in the expanded child level, or the leaf index) and the reflection
+//! that `node::Level::new_v2` decodes from the file's bytes, the word
+//! indices found by following the records' sizes (`Coding::record_size`).
+//!
 //! Without an adapter the test prints that it was skipped (a failure with
 //! `VDAG_REQUIRE_GPU=1`), like the GPU tests in `dagtrace/tests/it/gpu.rs`.
 
@@ -26,7 +34,7 @@ use dagfmt::{Dag, Dag2};
 use wgpu::util::DeviceExt;
 
 use super::layout::{GpuHit, GpuRay, ShaderConfig};
-use super::{AdapterChoice, GpuContext, GpuOptions, GpuTracer};
+use super::{AdapterChoice, GpuContext, GpuOptions, GpuTracer, V2Layout};
 use crate::node::{Level, attribute, child_mask, logical_leaf};
 use crate::testing::Rng;
 
@@ -98,6 +106,42 @@ fn check_decoding(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 "#;
 
+/// The expanded 2.0 test entry point: query `i` (kind, level, word index of
+/// the record or leaf index, slot or leaf reflection) answered in the four
+/// words at `4 * (n + i)`: node: header, child (word index or leaf index),
+/// reflection, word address; leaf: as [`CHECK2_WGSL`].
+const CHECK_EXPANDED_WGSL: &str = r#"
+@compute @workgroup_size(64)
+fn check_decoding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    let n = params.ray_count;
+    if (i >= n) {
+        return;
+    }
+    let kind = image[4u * i];
+    let level = image[4u * i + 1u];
+    let pointer = image[4u * i + 2u];
+    let slot = image[4u * i + 3u];
+    let a = record_address(level, pointer);
+    let out = 4u * (n + i);
+    if (kind == 0u) {
+        let mask = node_mask(a);
+        let child = child_entry(a, level, mask, slot);
+        image[out] = mask | (node_attribute(a) << CHILD_MASK_BITS);
+        image[out + 1u] = child.x;
+        image[out + 2u] = child.y;
+        image[out + 3u] = a;
+    } else {
+        let bits = leaf_mask(a);
+        let r = reflect_leaf(bits, slot);
+        image[out] = r.x;
+        image[out + 1u] = r.y;
+        image[out + 2u] = bits.x;
+        image[out + 3u] = 0u;
+    }
+}
+"#;
+
 /// Most queries of one DAG.
 const MAX_QUERIES: usize = 6_000;
 
@@ -107,8 +151,10 @@ impl GpuTracer {
         let inner = &self.context.inner;
         let device = &inner.device;
         let mut source = super::layout::shader_source(&self.config);
-        source.push_str(if self.config.format_v2 {
+        source.push_str(if self.config.v2_in_place() {
             CHECK2_WGSL
+        } else if self.config.format_v2 {
+            CHECK_EXPANDED_WGSL
         } else {
             CHECK_WGSL
         });
@@ -439,18 +485,76 @@ fn queries_v2(
     out
 }
 
+/// The word index each record of each node level of `levels` has in the
+/// expanded level (spec §23.12: a header word, then a word per child, in
+/// the file's record order), found by following the records' sizes.
+fn expanded_word_indices(levels: &[LevelView<'_>]) -> Vec<HashMap<u32, u32>> {
+    levels
+        .iter()
+        .filter(|l| !l.is_leaf)
+        .map(|view| {
+            let mut words = HashMap::new();
+            if view.bytes.is_empty() {
+                return words;
+            }
+            let coding = Coding::new(view.widths).expect("valid widths");
+            let (mut at, mut word) = (0u64, 0u32);
+            while at < view.bytes.len() as u64 {
+                let codes = coding.codes(view.bytes, at).expect("a record");
+                words.insert(at as u32, word);
+                word += 1 + codes.child_mask().count_ones();
+                at += coding.record_size(view.bytes, at).expect("a record");
+            }
+            words
+        })
+        .collect()
+}
+
+/// [`queries_v2`] for the expanded form: record queries name the record's
+/// word index, and their answers the child's word index (a leaf's index on
+/// the leaf level) and the reflection.
+fn expanded_queries(
+    levels: &[LevelView<'_>],
+    asked: Vec<([u32; 4], [u32; 3])>,
+) -> Vec<([u32; 4], [u32; 3])> {
+    let words = expanded_word_indices(levels);
+    let leaf_level = (levels.len() - 1) as u32;
+    asked
+        .into_iter()
+        .map(|(q, expected)| {
+            if q[0] != 0 {
+                return (q, expected);
+            }
+            let l = q[1] as usize;
+            let child = if q[1] + 1 < leaf_level {
+                words[l + 1][&expected[1]]
+            } else {
+                expected[1]
+            };
+            (
+                [q[0], q[1], words[l][&q[2]], q[3]],
+                [expected[0], child, expected[2] & 0xff],
+            )
+        })
+        .collect()
+}
+
 /// Checks the device's 2.0 decoding of the 2.0 file `bytes` against the
-/// CPU's, on one storage binding and, where `pages`, on several.
+/// CPU's, in the layout `layout`, on one storage binding and, where
+/// `pages`, on several.
 fn check_v2(
     ctx: &GpuContext,
     pipelines: &mut Pipelines,
     (name, bytes): (&str, &[u8]),
-    pages: bool,
+    (pages, layout): (bool, V2Layout),
     rng: &mut Rng,
     seen_kinds: &mut [usize; 4],
 ) -> usize {
     let dag = Dag2::open(bytes).unwrap_or_else(|e| panic!("{name}: {e}"));
-    let asked = queries_v2(dag.levels(), rng, seen_kinds);
+    let mut asked = queries_v2(dag.levels(), rng, seen_kinds);
+    if layout == V2Layout::Expanded {
+        asked = expanded_queries(dag.levels(), asked);
+    }
     if asked.is_empty() {
         return 0;
     }
@@ -463,6 +567,7 @@ fn check_v2(
     for max_binding_bytes in bindings {
         let options = GpuOptions {
             max_binding_bytes,
+            v2_layout: layout,
             ..GpuOptions::default()
         };
         let gpu = match GpuTracer::with_context_v2(ctx, dag.header(), dag.levels(), None, &options)
@@ -471,13 +576,14 @@ fn check_v2(
             Err(super::GpuError::TooLarge(_)) if max_binding_bytes.is_some() => continue,
             Err(e) => panic!("{name}: {e}"),
         };
+        assert_eq!(gpu.v2_layout(), Some(layout), "{name}");
         let query: Vec<[u32; 4]> = asked.iter().map(|(q, _)| *q).collect();
         let answers = gpu.decode_on_device(&query, pipelines);
         for ((q, expected), got) in asked.iter().zip(&answers) {
             assert_eq!(
                 &got[..3],
                 expected,
-                "{name} ({} bindings): {} {} of level {} (slot or reflection {})",
+                "{name} ({layout:?}, {} bindings): {} {} of level {} (slot or reflection {})",
                 gpu.binding_count(),
                 if q[0] == 0 { "record" } else { "leaf" },
                 q[2],
@@ -495,6 +601,18 @@ fn check_v2(
 /// after the first in interior levels (found by summing record sizes).
 #[test]
 fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
+    check_2_0_decoding(V2Layout::InPlace);
+}
+
+/// The expanded 2.0 decoder (spec §23.12), on the same DAGs: each child
+/// word read on the device is the child and reflection the CPU decodes
+/// from the file's record.
+#[test]
+fn wgsl_decoding_reads_expanded_2_0_levels_as_the_cpu_does() {
+    check_2_0_decoding(V2Layout::Expanded);
+}
+
+fn check_2_0_decoding(layout: V2Layout) {
     let Some(ctx) = context() else { return };
     let mut pipelines = Pipelines::new();
     let mut rng = Rng(0x42);
@@ -510,7 +628,7 @@ fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
             &ctx,
             &mut pipelines,
             (&name, &upgraded),
-            false,
+            (false, layout),
             &mut rng,
             &mut kinds,
         );
@@ -526,12 +644,12 @@ fn wgsl_decoding_reads_2_0_records_and_leaves_as_the_cpu_does() {
             &ctx,
             &mut pipelines,
             (&name, &upgraded),
-            true,
+            (true, layout),
             &mut rng,
             &mut kinds,
         );
     }
-    println!("{checked} 2.0 records decoded alike; kinds {kinds:?}; widths {widths:?}");
+    println!("{layout:?}: {checked} 2.0 records decoded alike; kinds {kinds:?}; widths {widths:?}");
     assert!(kinds.iter().all(|&n| n > 0), "kinds of children {kinds:?}");
     assert!(widths.len() >= 3, "widths {widths:?}");
 }

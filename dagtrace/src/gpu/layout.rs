@@ -275,10 +275,11 @@ gpu_struct! {
         /// Up vector scaled by tan(fov/2).
         pub cam_up: [f32; 4],
         /// Per level: word address of the section; the reference widths
-        /// (1.0: pointer bytes; 2.0: the bit widths `w1 | w2 << 8 | w3 << 16`,
-        /// spec §23.2, 0 for the leaf level); units (1.0: words; 2.0: bytes;
-        /// leaves for the leaf level), the bound a child address must be
-        /// below; 2.0: the word address of the level's record-start bit
+        /// (1.0: pointer bytes; 2.0 in place: the bit widths `w1 | w2 << 8 |
+        /// w3 << 16`, spec §23.2, 0 for the leaf level; 2.0 expanded: 4);
+        /// units (1.0 and 2.0 expanded: words; 2.0 in place: bytes; leaves
+        /// for the leaf level), the bound a child address must be below;
+        /// 2.0 in place: the word address of the level's record-start bit
         /// vector (`upload::record_starts`), 0 when it has none.
         pub levels: [[u32; 4]; MAX_STORED_LEVELS],
     }
@@ -339,6 +340,21 @@ pub(crate) struct ShaderConfig {
     /// `FORMAT_V2 = true`, its 2.0 decoder and the accumulated reflections;
     /// a 1.0 shader has them compiled out (constant-false branches).
     pub format_v2: bool,
+    /// With `format_v2`: whether the node levels are uploaded expanded
+    /// (`dagfmt::expand`, spec §23.12: 1.0-like records of aligned words,
+    /// a child one word `index << 3 | r`), so that the shader reads a child
+    /// with one load, as in 1.0, and keeps only the reflections of the 2.0
+    /// variant; else it decodes the records in place (`V2_IN_PLACE`).
+    /// Ignored without `format_v2`.
+    pub expanded: bool,
+}
+
+impl ShaderConfig {
+    /// Whether the shader decodes 2.0 records in place (bit streams at
+    /// byte offsets, spec §23.2) rather than reading aligned words.
+    pub fn v2_in_place(&self) -> bool {
+        self.format_v2 && !self.expanded
+    }
 }
 
 fn constant_u32(s: &mut String, name: &str, value: u32) {
@@ -393,6 +409,7 @@ pub(crate) fn preamble(config: &ShaderConfig) -> String {
     );
     let _ = writeln!(s, "const SHORT_STACK: bool = {};", config.short_stack);
     let _ = writeln!(s, "const FORMAT_V2: bool = {};", config.format_v2);
+    let _ = writeln!(s, "const V2_IN_PLACE: bool = {};", config.v2_in_place());
     constant_u32(&mut s, "PAGE_COUNT", config.pages);
     s.push('\n');
     for decl in [

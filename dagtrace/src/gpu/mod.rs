@@ -8,7 +8,9 @@
 //! [`GpuTracer::render`] makes and traces camera rays on the GPU.
 //! [`GpuTracer::with_context_v2`] uploads a format 2.0 DAG (spec §23) and
 //! traces it with the 2.0 variant of the shader, with the answers of the 1.0
-//! DAG of the same voxels (the lit passes too).
+//! DAG of the same voxels (the lit passes too): by default its node levels
+//! expanded into aligned words (`dagfmt::expand`, spec §23.12), so that a
+//! child is one load as in 1.0; [`V2Layout`] says how.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -151,6 +153,23 @@ pub enum StackMode {
     Short(u32),
 }
 
+/// How the node levels of a format 2.0 DAG are laid out on the device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum V2Layout {
+    /// Expanded once at upload (`dagfmt::expand::expand_levels`, spec
+    /// §23.12): 1.0-like records of aligned 32-bit words, a child one word
+    /// `index << 3 | r`, read with one load. A DAG whose levels do not
+    /// expand (a malformed one) is traced [`V2Layout::InPlace`], where each
+    /// fault is reported as before ([`GpuTracer::v2_layout`] says which).
+    /// Costs 4 bytes per node and per child on the device instead of the
+    /// file's level bytes.
+    #[default]
+    Expanded,
+    /// The file's record bytes as they are (spec §23.2), decoded by the
+    /// shader, with a record-start bit vector per level (spec §23.8).
+    InPlace,
+}
+
 /// How a [`GpuTracer`] is set up.
 #[derive(Clone, Debug, PartialEq)]
 pub struct GpuOptions {
@@ -177,6 +196,9 @@ pub struct GpuOptions {
     /// ([`GpuTracer::hit_colors`], [`GpuTracer::render_lit_colored`]).
     /// Ignored for a file without colours or without attribute kind 1.
     pub colors: bool,
+    /// How a format 2.0 DAG's node levels go to the device (ignored for
+    /// 1.0).
+    pub v2_layout: V2Layout,
 }
 
 impl Default for GpuOptions {
@@ -189,6 +211,7 @@ impl Default for GpuOptions {
             rays_per_dispatch: 1 << 18,
             compute_index: true,
             colors: false,
+            v2_layout: V2Layout::Expanded,
         }
     }
 }
@@ -477,6 +500,10 @@ pub struct GpuTracer {
     slots: Mutex<batch::Slots>,
     /// The file's colour section on the device, when asked for (`colors.rs`).
     colors: Option<colors::SharedColors>,
+    /// 2.0: how the node levels were uploaded (`None` for 1.0).
+    v2_layout: Option<V2Layout>,
+    /// 2.0 expanded: the time `dagfmt::expand::expand_levels` took.
+    expansion_time: Option<Duration>,
 }
 
 /// What [`GpuTracer`]'s constructors hand to its upload: a DAG of either
@@ -488,8 +515,9 @@ struct DagSource<'a, 'b> {
     levels: &'b [UploadLevel<'a>],
     /// The saturated-count table (level, node, count).
     saturated: Vec<(u8, u32, u64)>,
-    /// Whether the levels are 2.0 records (the shader variant to compile).
-    format_v2: bool,
+    /// Whether the levels are 2.0 (the shader variant to compile), and how
+    /// they are laid out (`None` for 1.0).
+    v2_layout: Option<V2Layout>,
     /// The file's colours, uploaded as stored when `GpuOptions::colors` asks.
     colors: Option<dagfmt::ColorTable<'a>>,
 }
@@ -543,7 +571,7 @@ impl GpuTracer {
                 empty: dag.is_empty(),
                 levels: &UploadLevel::v1(dag),
                 saturated,
-                format_v2: false,
+                v2_layout: None,
                 colors: dag.color_table(),
             },
             options,
@@ -571,11 +599,15 @@ impl GpuTracer {
     /// first, the leaf level last, as [`dagfmt::Dag2::levels`] or
     /// [`dagfmt::v2::Encoded::views`] give them) with `header`'s depth, root
     /// cube and attribute kind, to the device of `context`. The shader is
-    /// the 2.0 variant (its own pipelines): it decodes the records of §23.2
-    /// and carries the accumulated reflection of §23.4, with the answers of
-    /// the 1.0 file of the same voxels. Fails when the levels do not match
-    /// the depth, a node level's widths are invalid (E070), or a level is
-    /// more than 4 GiB (record offsets are 32-bit).
+    /// the 2.0 variant (its own pipelines): it carries the accumulated
+    /// reflection of §23.4, with the answers of the 1.0 file of the same
+    /// voxels. With [`V2Layout::Expanded`] (the default) the node levels are
+    /// expanded first (`dagfmt::expand::expand_levels`, spec §23.12) and the
+    /// shader reads a child as one aligned word; where they do not expand,
+    /// and with [`V2Layout::InPlace`], it decodes the records of §23.2 in
+    /// place. Fails when the levels do not match the depth, a node level's
+    /// widths are invalid (E070), or a level is more than 4 GiB (record
+    /// offsets are 32-bit).
     pub fn with_context_v2(
         context: &GpuContext,
         header: &dagfmt::Header,
@@ -603,16 +635,47 @@ impl GpuTracer {
                 dagfmt::v2::Coding::new(view.widths).map_err(GpuError::Malformed)?;
             }
         }
+        let empty = levels[0].item_count == 0;
+        if options.v2_layout == V2Layout::Expanded {
+            let t0 = Instant::now();
+            let expanded = dagfmt::expand::expand_levels(levels);
+            let expansion_time = t0.elapsed();
+            // A DAG that does not expand is traced in place (below), where
+            // the shader meets its faults as it always did.
+            if let Ok(expanded) = expanded {
+                let words = upload::ExpandedWords::new(&expanded);
+                let saturated = upload::saturated_counts_expanded(
+                    &expanded,
+                    levels[levels.len() - 1],
+                    header.attribute_kind,
+                    empty,
+                )?;
+                let mut tracer = Self::build(
+                    context,
+                    DagSource {
+                        header,
+                        empty,
+                        levels: &UploadLevel::expanded(&words, levels),
+                        saturated,
+                        v2_layout: Some(V2Layout::Expanded),
+                        colors,
+                    },
+                    options,
+                )?;
+                tracer.expansion_time = Some(expansion_time);
+                return Ok(tracer);
+            }
+        }
         let saturated = upload::saturated_counts_v2(levels, header.attribute_kind)?;
         let starts = upload::record_starts(levels);
         Self::build(
             context,
             DagSource {
                 header,
-                empty: levels[0].item_count == 0,
+                empty,
                 levels: &UploadLevel::v2(levels, &starts),
                 saturated,
-                format_v2: true,
+                v2_layout: Some(V2Layout::InPlace),
                 colors,
             },
             options,
@@ -631,7 +694,7 @@ impl GpuTracer {
             empty,
             levels,
             saturated,
-            format_v2,
+            v2_layout,
             colors,
         } = source;
         let (stack_size, short_stack) = match options.stack {
@@ -667,7 +730,8 @@ impl GpuTracer {
             short_stack,
             pages: placement.pages,
             page_shift: placement.page_shift(),
-            format_v2,
+            format_v2: v2_layout.is_some(),
+            expanded: v2_layout == Some(V2Layout::Expanded),
         };
         let pipelines = context.pipelines(config)?;
         let device = &context.inner.device;
@@ -756,6 +820,8 @@ impl GpuTracer {
             lit: std::sync::OnceLock::new(),
             slots: Mutex::new(batch::Slots::default()),
             colors: gpu_colors,
+            v2_layout,
+            expansion_time: None,
         })
     }
 
@@ -774,9 +840,22 @@ impl GpuTracer {
         self.page_bytes
     }
 
-    /// Bytes uploaded: the level sections and the saturated-count table.
+    /// Bytes uploaded: the level sections (2.0: as laid out, expanded or
+    /// with their record-start bit vectors) and the saturated-count table.
     pub fn uploaded_bytes(&self) -> u64 {
         self.total_bytes
+    }
+
+    /// How a 2.0 DAG's node levels were uploaded: [`V2Layout::InPlace`]
+    /// when asked for or when they did not expand; `None` for a 1.0 DAG.
+    pub fn v2_layout(&self) -> Option<V2Layout> {
+        self.v2_layout
+    }
+
+    /// The time `dagfmt::expand::expand_levels` took, when the 2.0 DAG was
+    /// uploaded expanded.
+    pub fn expansion_time(&self) -> Option<Duration> {
+        self.expansion_time
     }
 
     /// The loop iteration bound of one ray.

@@ -8,14 +8,16 @@ use wgpu::naga;
 
 fn configs() -> Vec<ShaderConfig> {
     let mut out = Vec::new();
-    // Each configuration in both variants: 1.0 and 2.0 records.
-    for format_v2 in [false, true] {
+    // Each configuration in the three variants: 1.0, 2.0 expanded and 2.0
+    // in place.
+    for (format_v2, expanded) in [(false, false), (true, true), (true, false)] {
         out.push(ShaderConfig {
             stack_size: layout::MAX_STORED_LEVELS as u32,
             short_stack: false,
             pages: 1,
             page_shift: 0,
             format_v2,
+            expanded,
         });
         for stack_size in [1, 2, 4, 16] {
             out.push(ShaderConfig {
@@ -24,6 +26,7 @@ fn configs() -> Vec<ShaderConfig> {
                 pages: 3,
                 page_shift: 14,
                 format_v2,
+                expanded,
             });
         }
         out.push(ShaderConfig {
@@ -32,6 +35,7 @@ fn configs() -> Vec<ShaderConfig> {
             pages: MAX_PAGES,
             page_shift: 20,
             format_v2,
+            expanded,
         });
     }
     out
@@ -130,6 +134,7 @@ fn preamble_carries_the_rust_constants() {
         "const STACK_MASK: u32 = 0u;".to_string(),
         "const SHORT_STACK: bool = true;".to_string(),
         "const FORMAT_V2: bool = false;".to_string(),
+        "const V2_IN_PLACE: bool = false;".to_string(),
         "case 2u: { return page2[offset]; }".to_string(),
     ] {
         assert!(source.contains(&line), "missing `{line}` in\n{source}");

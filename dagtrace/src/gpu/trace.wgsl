@@ -19,19 +19,24 @@
 // - the last two levels (the 4^3 brick of a leaf) come from the 64-bit mask.
 //
 // Format 2.0 (spec §23; FORMAT_V2, a separate shader: the 1.0 shader has
-// these branches compiled out): a node's address is its byte offset in its
-// level, its references are decoded by the functions below (the counterpart
-// of dagfmt::v2::Coding), and each frame carries the accumulated reflection
-// R (§23.4). A node reached with R is traced as a 1.0 node by a ray whose
+// these branches compiled out): each frame carries the accumulated
+// reflection R (§23.4). Its node levels are read in one of two forms:
+// - expanded (the default; spec §23.12, dagfmt::expand): 1.0-like records
+//   of aligned words, a child one word `index << 3 | r` at rank + 1 after
+//   the header (`child_entry`), so a node is addressed and read as in 1.0
+//   with 4-byte pointers;
+// - in place (V2_IN_PLACE: files that do not expand, or when asked): a
+//   node's address is its byte offset in its level, its references are
+//   decoded by the functions below (the counterpart of dagfmt::v2::Coding). A node reached with R is traced as a 1.0 node by a ray whose
 // octant is `neg ^ R` (the CPU's walk.rs does the same): physical slot of
 // mirrored child j is `j ^ neg ^ R`, and a leaf's sub-brick and voxel bits
 // are both indexed with `neg ^ R`; a child's R is its parent's XOR the
 // reference's reflection. The dense index sums the siblings at physical
 // slots p with (p ^ R) < c and counts the bits of the reflected leaf mask.
 //
-// Stack: one entry (node word address (2.0: byte offset), child mask |
-// remaining chain << 8 | R << 16) per interior level; 2.0 keeps the node's
-// codes in a second array. With SHORT_STACK the stack is a ring of STACK_SIZE entries;
+// Stack: one entry (node word address (2.0 in place: byte offset), child
+// mask | remaining chain << 8 | R << 16) per interior level; 2.0 in place
+// keeps the node's codes in a second array. With SHORT_STACK the stack is a ring of STACK_SIZE entries;
 // when the traversal pops to a level whose entry was overwritten, it restarts
 // from the root and replays the path to that level (the path is the current
 // cell's coordinate bits): every node on the way is evaluated with the same
@@ -150,6 +155,19 @@ fn node_attribute(a: u32) -> u32 {
 // child mask is `mask`.
 fn child_reference(a: u32, level: u32, mask: u32, c: u32) -> u32 {
     return fetch_pointer(a, countOneBits(mask & ((1u << c) - 1u)), params.levels[level].y);
+}
+
+// The child at slot `c` (set in `mask`) of the node of level `level` at word
+// address `a`: (pointer into level `level + 1`, reflection). 1.0: the
+// reference, reflection 0; 2.0 expanded (spec §23.12): the word at rank + 1,
+// `index << 3 | r`, one aligned load whatever the width of the file's
+// references.
+fn child_entry(a: u32, level: u32, mask: u32, c: u32) -> vec2<u32> {
+    if (FORMAT_V2) {
+        let w = load_word(a + 1u + countOneBits(mask & ((1u << c) - 1u)));
+        return vec2<u32>(w >> 3u, w & 7u);
+    }
+    return vec2<u32>(child_reference(a, level, mask, c), 0u);
 }
 
 // The leaf mask at word address `a` (low word, high word).
@@ -396,9 +414,9 @@ const PATH_MALFORMED: u32 = 2u;
 // The node (or leaf) of level `to` on the path of cell `cell` (file frame)
 // of level `level`, `to` at most min(level, leaf_level), reached as
 // `traverse` reaches it (the lit passes' neighbourhood lookups): `.x` its
-// reference in level `to` (1.0: word offset of the node, or leaf index;
-// 2.0: byte offset of the record, or leaf index), `.y` its accumulated
-// reflection (0 in 1.0), `.z` PATH_FOUND, PATH_EMPTY when a node on the way
+// reference in level `to` (1.0 and 2.0 expanded: word offset of the node,
+// or leaf index; 2.0 in place: byte offset of the record, or leaf index),
+// `.y` its accumulated reflection (0 in 1.0), `.z` PATH_FOUND, PATH_EMPTY when a node on the way
 // lacks the child, PATH_MALFORMED when a reference leaves its level.
 fn path_node(cell: vec3<u32>, level: u32, to: u32) -> vec3<u32> {
     var pointer = 0u;
@@ -406,7 +424,7 @@ fn path_node(cell: vec3<u32>, level: u32, to: u32) -> vec3<u32> {
     for (var l = 0u; l < to; l += 1u) {
         let c = path_child(cell, level - 1u - l);
         var next = 0u;
-        if (FORMAT_V2) {
+        if (V2_IN_PLACE) {
             let codes = codes2(l, pointer);
             let slot = c ^ r;
             if ((codes.header & (1u << slot)) == 0u) {
@@ -418,10 +436,13 @@ fn path_node(cell: vec3<u32>, level: u32, to: u32) -> vec3<u32> {
         } else {
             let a = params.levels[l].x + pointer;
             let mask = node_mask(a);
-            if ((mask & (1u << c)) == 0u) {
+            let slot = c ^ r;
+            if ((mask & (1u << slot)) == 0u) {
                 return vec3<u32>(0u, 0u, PATH_EMPTY);
             }
-            next = child_reference(a, l, mask, c);
+            let ch = child_entry(a, l, mask, slot);
+            next = ch.x;
+            r ^= ch.y;
         }
         if (next >= params.levels[l + 1u].z) {
             return vec3<u32>(0u, 0u, PATH_MALFORMED);
@@ -516,13 +537,13 @@ fn traverse(p: Prepared) -> Found {
         return f;
     }
     var stack: array<vec2<u32>, STACK_SIZE>;
-    // 2.0: the codes of each frame's node, `pack_codes2` (unused, and
-    // compiled out, in 1.0).
+    // 2.0 in place: the codes of each frame's node, `pack_codes2` (unused,
+    // and compiled out, in 1.0 and 2.0 expanded).
     var codes_stack: array<vec3<u32>, STACK_SIZE>;
     var level = 0u;
     var idx = vec3<u32>(0u);
-    // The node to enter: 1.0 word address, 2.0 byte offset in its level.
-    var addr = select(params.levels[0].x, 0u, FORMAT_V2);
+    // The node to enter: word address (2.0 in place: byte offset in its level).
+    var addr = select(params.levels[0].x, 0u, V2_IN_PLACE);
     // 2.0: accumulated reflection of the current frame (0 in 1.0).
     var refl = 0u;
     var enter = true;
@@ -546,7 +567,7 @@ fn traverse(p: Prepared) -> Found {
         if (enter) {
             enter = false;
             node = addr;
-            if (FORMAT_V2) {
+            if (V2_IN_PLACE) {
                 let c = codes2(level, addr);
                 codes_stack[level & STACK_MASK] = pack_codes2(c);
                 mask = c.header & 0xffu;
@@ -600,7 +621,7 @@ fn traverse(p: Prepared) -> Found {
                     path = idx;
                     level = 0u;
                     idx = vec3<u32>(0u);
-                    addr = select(params.levels[0].x, 0u, FORMAT_V2);
+                    addr = select(params.levels[0].x, 0u, V2_IN_PLACE);
                     refl = 0u;
                     bottom = 0u;
                     enter = true;
@@ -625,13 +646,16 @@ fn traverse(p: Prepared) -> Found {
         let child_info = params.levels[child_level];
         var pointer = 0u;
         var child_refl = 0u;
-        if (FORMAT_V2) {
+        if (V2_IN_PLACE) {
             let codes = unpack_codes2(mask, codes_stack[level & STACK_MASK]);
             let ch = child2(level, node, codes, j ^ p.neg ^ refl);
             pointer = ch.x;
             child_refl = refl ^ ch.y;
         } else {
-            pointer = child_reference(node, level, mask, j ^ p.neg);
+            // 1.0, and 2.0 expanded (refl is 0 in 1.0).
+            let ch = child_entry(node, level, mask, j ^ p.neg ^ refl);
+            pointer = ch.x;
+            child_refl = refl ^ ch.y;
         }
         if (pointer >= child_info.z) {
             f.status = INFO_MALFORMED;
@@ -649,7 +673,7 @@ fn traverse(p: Prepared) -> Found {
         }
         level = child_level;
         idx = child_idx;
-        addr = select(child_info.x + pointer, pointer, FORMAT_V2);
+        addr = select(child_info.x + pointer, pointer, V2_IN_PLACE);
         refl = child_refl;
         enter = true;
     }
@@ -721,7 +745,7 @@ fn subtree_count2(level: u32, dest: u32) -> vec2<u32> {
     return vec2<u32>(count, 0u);
 }
 
-// `dense_index` of a 2.0 DAG (spec §23.5): with the accumulated reflection
+// `dense_index` of a 2.0 DAG read in place (spec §23.5): with the accumulated reflection
 // R, logical child c is at physical slot c ^ R, the earlier siblings are the
 // set slots p with (p ^ R) < c, and the leaf's bits are counted in its mask
 // reflected by R.
@@ -770,29 +794,40 @@ fn leaf_rank(bits: vec2<u32>, cell: vec3<u32>, level: u32) -> u32 {
 
 // The dense index of the first voxel of cell `cell` (file frame) of level
 // `level`: the counts of the earlier siblings on every level of its path plus
-// the set bits before it in its leaf.
+// the set bits before it in its leaf. 2.0 expanded (spec §23.5): with the
+// accumulated reflection R, logical child c is at physical slot c ^ R, the
+// earlier siblings are the set slots p with (p ^ R) < c, and the leaf's
+// bits are counted in its mask reflected by R (R is 0 in 1.0).
 fn dense_index(cell: vec3<u32>, level: u32) -> vec2<u32> {
-    if (FORMAT_V2) {
+    if (V2_IN_PLACE) {
         return dense_index2(cell, level);
     }
     var index = vec2<u32>(0u);
     var addr = params.levels[0].x;
+    var r = 0u;
     let leaf_level = params.leaf_level;
     let interior = min(level, leaf_level);
     for (var l = 0u; l < interior; l += 1u) {
         let mask = node_mask(addr);
         let c = child_at(cell, level - 1u - l);
-        for (var s = 0u; s < c; s += 1u) {
-            if ((mask & (1u << s)) != 0u) {
-                index = add64(index, subtree_count(l + 1u, child_reference(addr, l, mask, s)));
+        // 1.0: the slots below c; 2.0: any slot may hold a logical sibling before it.
+        let slots = select(c, 8u, FORMAT_V2);
+        for (var s = 0u; s < slots; s += 1u) {
+            if ((mask & (1u << s)) != 0u && (s ^ r) < c) {
+                index = add64(index, subtree_count(l + 1u, child_entry(addr, l, mask, s).x));
             }
         }
-        let pointer = child_reference(addr, l, mask, c);
+        let ch = child_entry(addr, l, mask, c ^ r);
+        r ^= ch.y;
         let child = params.levels[l + 1u];
-        addr = child.x + select(pointer, 2u * pointer, l + 1u == leaf_level);
+        addr = child.x + select(ch.x, 2u * ch.x, l + 1u == leaf_level);
     }
     if (level > leaf_level) {
-        index = add64(index, vec2<u32>(leaf_rank(leaf_mask(addr), cell, level), 0u));
+        var bits = leaf_mask(addr);
+        if (FORMAT_V2) {
+            bits = reflect_leaf(bits, r);
+        }
+        index = add64(index, vec2<u32>(leaf_rank(bits, cell, level), 0u));
     }
     return index;
 }

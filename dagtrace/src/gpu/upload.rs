@@ -7,7 +7,10 @@
 //! unaligned, and the shader reads them with aligned word loads at byte
 //! offsets ([`UploadLevel`] says how each level is addressed); after each
 //! 2.0 level named by sequential runs comes its record-start bit vector
-//! ([`record_starts`]). The space is cut into pages of a power-of-two
+//! ([`record_starts`]). A 2.0 DAG's node levels may instead be uploaded
+//! expanded (`dagfmt::expand`, spec §23.12: [`ExpandedWords`]), laid out and
+//! addressed as 1.0 levels of 4-byte pointers, its leaf level in place. The
+//! space is cut into pages of a power-of-two
 //! number of words, one storage binding each, so that a DAG larger than the
 //! largest storage binding still fits (`load_word` in the generated preamble
 //! picks the page). Records may straddle pages: every word is looked up on its
@@ -56,6 +59,31 @@ impl<'a> UploadLevel<'a> {
             .collect()
     }
 
+    /// The levels of a 2.0 DAG expanded (spec §23.12): the node levels'
+    /// words (`words`, addressed in words like 1.0 levels of 4-byte
+    /// pointers), then the leaf level of `levels` as stored.
+    pub fn expanded(words: &'a ExpandedWords<'_>, levels: &[LevelView<'a>]) -> Vec<Self> {
+        let mut out: Vec<Self> = words
+            .levels
+            .iter()
+            .map(|bytes| UploadLevel {
+                bytes: bytes.as_ref(),
+                widths: 4,
+                units: bytes.len() as u64 / 4,
+                starts: None,
+            })
+            .collect();
+        if let Some(leaf) = levels.last().filter(|l| l.is_leaf) {
+            out.push(UploadLevel {
+                bytes: leaf.bytes,
+                widths: 0,
+                units: leaf.bytes.len() as u64 / 8,
+                starts: None,
+            });
+        }
+        out
+    }
+
     /// The levels of a 2.0 DAG (spec §23.2: records at byte offsets), with
     /// the record-start bit vectors `starts` (one per level, empty for none).
     pub fn v2(levels: &[LevelView<'a>], starts: &'a [Vec<u32>]) -> Vec<Self> {
@@ -79,6 +107,31 @@ impl<'a> UploadLevel<'a> {
                 starts: (!starts.is_empty()).then_some(starts.as_slice()),
             })
             .collect()
+    }
+}
+
+/// The expanded node levels of a 2.0 DAG as the bytes the device holds:
+/// each level's words, little-endian (borrowed from the expansion on a
+/// little-endian host, so the largest levels are not copied).
+pub(crate) struct ExpandedWords<'a> {
+    levels: Vec<std::borrow::Cow<'a, [u8]>>,
+}
+
+impl<'a> ExpandedWords<'a> {
+    /// The bytes of `expanded` (`dagfmt::expand::expand_levels`'s levels).
+    pub fn new(expanded: &'a [dagfmt::expand::ExpandedLevel]) -> Self {
+        ExpandedWords {
+            levels: expanded
+                .iter()
+                .map(|level| {
+                    if cfg!(target_endian = "little") {
+                        std::borrow::Cow::Borrowed(bytemuck::cast_slice(&level.words))
+                    } else {
+                        level.words.iter().flat_map(|w| w.to_le_bytes()).collect()
+                    }
+                })
+                .collect(),
+        }
     }
 }
 
@@ -319,6 +372,76 @@ fn count_v2(
         total = total.saturating_add(count_v2(levels, level + 1, target, memo)?);
     }
     memo.insert((level, offset), total);
+    Ok(total)
+}
+
+/// Voxel counts of the records of an expanded 2.0 DAG (spec §23.12) whose
+/// stored count is saturated, as `(level, word index of the record, count)`,
+/// reached from the root, as [`saturated_counts`] gives them for 1.0 (a
+/// reflection does not change a count, spec §23.5). `leaf` is the DAG's
+/// leaf level; the expansion checked every reference.
+pub(crate) fn saturated_counts_expanded(
+    expanded: &[dagfmt::expand::ExpandedLevel],
+    leaf: LevelView<'_>,
+    attribute_kind: AttributeKind,
+    empty: bool,
+) -> Result<Vec<(u8, u32, u64)>, GpuError> {
+    if attribute_kind != AttributeKind::VoxelCount || empty || expanded.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut memo = FxHashMap::default();
+    count_expanded(expanded, leaf, 0, 0, &mut memo).map_err(GpuError::Malformed)?;
+    let mut out: Vec<(u8, u32, u64)> = memo
+        .into_iter()
+        .map(|((l, word), c)| (l, word as u32, c))
+        .collect();
+    out.sort_unstable();
+    Ok(out)
+}
+
+fn count_expanded(
+    expanded: &[dagfmt::expand::ExpandedLevel],
+    leaf: LevelView<'_>,
+    level: u8,
+    word: u64,
+    memo: &mut FxHashMap<(u8, u64), u64>,
+) -> Result<u64, FormatError> {
+    let Some(ex) = expanded.get(usize::from(level)) else {
+        let at = usize::try_from(word.saturating_mul(8)).unwrap_or(usize::MAX);
+        let bytes = leaf
+            .bytes
+            .get(at..at.saturating_add(8))
+            .ok_or_else(|| out_of_range(word))?;
+        let bits = u64::from_le_bytes(bytes.try_into().expect("8 bytes"));
+        return Ok(u64::from(bits.count_ones()));
+    };
+    let header = *ex
+        .words
+        .get(word as usize)
+        .ok_or_else(|| out_of_range(word))?;
+    let count = header >> dagfmt::layout::CHILD_MASK_BITS;
+    if count != COUNT_SATURATED {
+        return Ok(u64::from(count));
+    }
+    if let Some(&n) = memo.get(&(level, word)) {
+        return Ok(n);
+    }
+    let children = (header & 0xff).count_ones() as usize;
+    let refs = ex
+        .words
+        .get(word as usize + 1..word as usize + 1 + children)
+        .ok_or_else(|| out_of_range(word))?;
+    let mut total = 0u64;
+    for &r in refs {
+        total = total.saturating_add(count_expanded(
+            expanded,
+            leaf,
+            level + 1,
+            u64::from(r >> 3),
+            memo,
+        )?);
+    }
+    memo.insert((level, word), total);
     Ok(total)
 }
 

@@ -15,7 +15,9 @@ use std::sync::OnceLock;
 use dagfmt::batch::{Hit, Ray};
 use dagfmt::{AttributeKind, Dag, DagBuilder, morton};
 use dagtrace::camera::Camera;
-use dagtrace::gpu::{AdapterChoice, GpuContext, GpuError, GpuOptions, GpuTracer, StackMode};
+use dagtrace::gpu::{
+    AdapterChoice, GpuContext, GpuError, GpuOptions, GpuTracer, StackMode, V2Layout,
+};
 
 // ---------------------------------------------------------------- adapter --
 
@@ -732,6 +734,20 @@ fn saturated_counts_give_dense_indices() {
         let extra_before = codes.iter().filter(|&&c| c < code).count() as u64;
         assert_eq!(hit.index, Some(solid_before + extra_before), "{ray:?}");
     }
+    // The 2.0 file of the same voxels gives the same indices: its saturated
+    // records' counts are in the table under their expanded word index
+    // (expanded) or the word of their first byte (in place).
+    let v2 = dagfmt::v2file::upgrade(&dag).expect("upgrade");
+    for v2_layout in LAYOUTS {
+        let options = GpuOptions {
+            v2_layout,
+            ..GpuOptions::default()
+        };
+        let two = tracer_v2(ctx, &v2, options)
+            .trace(&rays)
+            .expect("2.0 trace");
+        assert_same_hits(&rays, &hits, &two, &format!("saturated, {v2_layout:?}"));
+    }
 }
 
 #[test]
@@ -1191,11 +1207,19 @@ fn command_line_gpu_backend_gives_the_cpu_answers() {
 
 // ------------------------------------------------------------ format 2.0 --
 
-/// The GPU tracer of the 2.0 file `v2` (spec §23).
+/// The GPU tracer of the 2.0 file `v2` (spec §23), its node levels laid
+/// out as `options.v2_layout` asks (checked: a valid file expands).
 fn tracer_v2(ctx: &GpuContext, v2: &[u8], options: GpuOptions) -> GpuTracer {
     let dag = dagfmt::Dag2::open(v2).expect("a 2.0 file");
-    GpuTracer::with_context_v2(ctx, dag.header(), dag.levels(), None, &options).expect("GPU tracer")
+    let gpu = GpuTracer::with_context_v2(ctx, dag.header(), dag.levels(), None, &options)
+        .expect("GPU tracer");
+    assert_eq!(gpu.v2_layout(), Some(options.v2_layout));
+    gpu
 }
+
+/// The layouts of a 2.0 DAG's node levels on the device: expanded (spec
+/// §23.12, the default) and in place (§23.2).
+const LAYOUTS: [V2Layout; 2] = [V2Layout::Expanded, V2Layout::InPlace];
 
 /// Asserts that the 2.0 answers are the 1.0 answers to the bit.
 fn assert_same_hits(rays: &[Ray], v1: &[Hit], v2: &[Hit], what: &str) {
@@ -1222,7 +1246,7 @@ const STACKS: [StackMode; 3] = [StackMode::Full, StackMode::Short(2), StackMode:
 /// Format 2.0 on the GPU (spec §23): every conformance trace case upgraded
 /// with `dagfmt::v2file::upgrade` gives, on its own rays, the GPU's 1.0
 /// answers to the bit (hit, t, cell, face, attribute index), with the full
-/// and short stacks. (The cases' exact ties, where the GPU and CPU tracers
+/// and short stacks, expanded and in place. (The cases' exact ties, where the GPU and CPU tracers
 /// may differ within the spec's tolerance, are the suite's to judge; the
 /// random DAGs below check against the oracle and the CPU.)
 #[test]
@@ -1257,14 +1281,18 @@ fn format_2_conformance_cases_give_the_1_0_answers() {
             .trace(&rays)
             .expect("1.0 trace");
         for stack in STACKS {
-            let options = GpuOptions {
-                stack,
-                ..GpuOptions::default()
-            };
-            let hits = tracer_v2(ctx, &v2, options)
-                .trace(&rays)
-                .expect("2.0 trace");
-            assert_same_hits(&rays, &v1_hits, &hits, &format!("{name} {stack:?}"));
+            for v2_layout in LAYOUTS {
+                let options = GpuOptions {
+                    stack,
+                    v2_layout,
+                    ..GpuOptions::default()
+                };
+                let hits = tracer_v2(ctx, &v2, options)
+                    .trace(&rays)
+                    .expect("2.0 trace");
+                let what = format!("{name} {stack:?} {v2_layout:?}");
+                assert_same_hits(&rays, &v1_hits, &hits, &what);
+            }
         }
         traced += rays.len();
     }
@@ -1298,29 +1326,153 @@ fn format_2_random_dags_give_the_1_0_answers() {
         let rays = random_rays(&mut rng, &t, 800);
         let what = format!("depth {depth}");
         let v1_hits = check_against_references(ctx, &t, &rays, GpuOptions::default(), &what);
-        for stack in STACKS {
-            let options = GpuOptions {
-                stack,
-                ..GpuOptions::default()
-            };
-            let hits = tracer_v2(ctx, &v2, options)
-                .trace(&rays)
-                .expect("2.0 trace");
-            assert_same_hits(&rays, &v1_hits, &hits, &format!("{what} {stack:?}"));
-        }
+        check_2_0_layouts(ctx, &t, &v2, &rays, &v1_hits, &what);
         hits_seen += v1_hits.iter().filter(|h| h.hit).count();
-        if depth >= 5 {
-            let camera = Camera::looking_at_cube(t.root_min, t.root_size, 1.5);
-            let one = tracer(ctx, &dag, GpuOptions::default())
-                .render(&camera, 48, 32, None)
-                .expect("1.0 render");
-            let two = tracer_v2(ctx, &v2, GpuOptions::default())
-                .render(&camera, 48, 32, None)
-                .expect("2.0 render");
-            assert_eq!(one, two, "{what}: 2.0 render differs from 1.0");
-        }
     }
     assert!(hits_seen > 1000, "{hits_seen} hits only");
+}
+
+/// The 2.0 file `v2` of `t`'s voxels, expanded and in place, with the full
+/// and short stacks, gives `v1_hits` (the GPU's 1.0 answers, checked
+/// against the oracle and the CPU) on `rays` to the bit; from depth 5, a
+/// render through a camera gives the 1.0 hits and picture.
+fn check_2_0_layouts(
+    ctx: &GpuContext,
+    t: &TestDag,
+    v2: &[u8],
+    rays: &[Ray],
+    v1_hits: &[Hit],
+    what: &str,
+) {
+    for stack in STACKS {
+        for v2_layout in LAYOUTS {
+            let options = GpuOptions {
+                stack,
+                v2_layout,
+                ..GpuOptions::default()
+            };
+            let hits = tracer_v2(ctx, v2, options).trace(rays).expect("2.0 trace");
+            assert_same_hits(
+                rays,
+                v1_hits,
+                &hits,
+                &format!("{what} {stack:?} {v2_layout:?}"),
+            );
+        }
+    }
+    if t.depth >= 5 {
+        let camera = Camera::looking_at_cube(t.root_min, t.root_size, 1.5);
+        let one = tracer(ctx, &t.dag(), GpuOptions::default())
+            .render(&camera, 48, 32, None)
+            .expect("1.0 render");
+        for v2_layout in LAYOUTS {
+            let options = GpuOptions {
+                v2_layout,
+                ..GpuOptions::default()
+            };
+            let two = tracer_v2(ctx, v2, options)
+                .render(&camera, 48, 32, None)
+                .expect("2.0 render");
+            assert_eq!(
+                one, two,
+                "{what} {v2_layout:?}: 2.0 render differs from 1.0"
+            );
+        }
+    }
+}
+
+/// Random DAGs with mirrored content (each cluster also mirrored across one
+/// to three axes of the volume), whose 2.0 files have reflected references
+/// on several levels (checked on the expansion): expanded and in place,
+/// full and short stacks, the 2.0 answers are the GPU's 1.0 answers to the
+/// bit, which pass the oracle and agree with the CPU tracer.
+#[test]
+fn format_2_mirrored_random_dags_give_the_1_0_answers() {
+    let Some(ctx) = context() else { return };
+    let mut rng = Rng(4242);
+    let mut reflected_levels = std::collections::HashSet::new();
+    for (case, depth) in [3u8, 4, 5, 6, 7, 8].into_iter().enumerate() {
+        let kind = if case % 3 == 2 {
+            AttributeKind::None
+        } else {
+            AttributeKind::VoxelCount
+        };
+        let n = (1u32 << depth) - 1;
+        let mut voxels = random_voxels(&mut rng, depth, 6);
+        let mirrored: Vec<[u32; 3]> = voxels
+            .iter()
+            .map(|v| {
+                let axes = 1 + (v[0] ^ v[1] ^ v[2]) % 7;
+                std::array::from_fn(|i| if axes >> i & 1 == 1 { n - v[i] } else { v[i] })
+            })
+            .collect();
+        voxels.extend(mirrored);
+        let root_min = [
+            rng.range(-5.0, 5.0),
+            rng.range(-5.0, 5.0),
+            rng.range(-5.0, 5.0),
+        ];
+        let t = TestDag::new(depth, kind, voxels, root_min, rng.range(0.5, 40.0));
+        let v2 = dagfmt::v2file::upgrade(&t.dag()).expect("upgrade");
+        let dag2 = dagfmt::Dag2::open(&v2).expect("a 2.0 file");
+        let expanded = dagfmt::expand::expand_levels(dag2.levels()).expect("expands");
+        for (l, level) in expanded.iter().enumerate() {
+            let mut at = 0;
+            while at < level.words.len() {
+                let children = (level.words[at] & 0xff).count_ones() as usize;
+                if level.words[at + 1..at + 1 + children]
+                    .iter()
+                    .any(|w| w & 7 != 0)
+                {
+                    reflected_levels.insert(l);
+                }
+                at += 1 + children;
+            }
+        }
+        let rays = random_rays(&mut rng, &t, 800);
+        let what = format!("mirrored, depth {depth}");
+        let v1_hits = check_against_references(ctx, &t, &rays, GpuOptions::default(), &what);
+        check_2_0_layouts(ctx, &t, &v2, &rays, &v1_hits, &what);
+    }
+    assert!(
+        reflected_levels.len() >= 3,
+        "reflected references on levels {reflected_levels:?} only"
+    );
+}
+
+/// A 2.0 DAG whose levels do not expand (its last node level cut by a
+/// byte, so its last record runs past the end) is traced in place, as
+/// [`V2Layout::InPlace`] traces it: the same answers, or the same error.
+#[test]
+fn format_2_that_does_not_expand_is_traced_in_place() {
+    let Some(ctx) = context() else { return };
+    let mut rng = Rng(4343);
+    let t = TestDag::new(
+        6,
+        AttributeKind::VoxelCount,
+        random_voxels(&mut rng, 6, 6),
+        [0.0; 3],
+        1.0,
+    );
+    let dag = t.dag();
+    let mut enc = dagfmt::v2::encode(&dag).expect("encode");
+    let last = enc.levels.len() - 2;
+    enc.levels[last].bytes.pop();
+    let views = enc.views();
+    assert!(dagfmt::expand::expand_levels(&views).is_err());
+    let rays = random_rays(&mut rng, &t, 400);
+    let traced = |v2_layout| {
+        let options = GpuOptions {
+            v2_layout,
+            ..GpuOptions::default()
+        };
+        let gpu = GpuTracer::with_context_v2(ctx, dag.header(), &views, None, &options)
+            .expect("GPU tracer");
+        assert_eq!(gpu.v2_layout(), Some(V2Layout::InPlace), "{v2_layout:?}");
+        assert_eq!(gpu.expansion_time(), None);
+        gpu.trace(&rays)
+    };
+    assert_eq!(traced(V2Layout::Expanded), traced(V2Layout::InPlace));
 }
 
 /// The GPU's lit render of a 2.0 DAG (the lit passes compiled with the 2.0
@@ -1328,7 +1480,8 @@ fn format_2_random_dags_give_the_1_0_answers() {
 /// `path_node`, reflected leaves included) gives the 1.0 DAG's surfaces to
 /// the bit (hit, face, attribute index, shading normal, shadow, ambient
 /// occlusion) and so its image: random DAGs and conformance scenes (whose
-/// symmetric shapes make reflected references), full and short stacks, at
+/// symmetric shapes make reflected references), expanded (full and short
+/// stacks) and in place (full stack), at
 /// full depth, at the cells of the leaf level's 4^3 bricks and above them.
 #[test]
 fn format_2_lit_render_gives_the_1_0_surfaces() {
@@ -1376,16 +1529,22 @@ fn format_2_lit_render_gives_the_1_0_surfaces() {
             let image = one
                 .render_lit(&camera, 40, 30, level, &options, |_| None)
                 .expect("1.0 lit image");
-            for stack in STACKS {
+            // Expanded with every stack; in place with the full one.
+            let configurations = STACKS
+                .iter()
+                .map(|&stack| (stack, V2Layout::Expanded))
+                .chain([(StackMode::Full, V2Layout::InPlace)]);
+            for (stack, v2_layout) in configurations {
                 let two = tracer_v2(
                     ctx,
                     &v2,
                     GpuOptions {
                         stack,
+                        v2_layout,
                         ..GpuOptions::default()
                     },
                 );
-                let what = format!("{name}, level {level:?}, {stack:?}");
+                let what = format!("{name}, level {level:?}, {stack:?}, {v2_layout:?}");
                 let surfaces = two
                     .lit_surfaces(&camera, 40, 30, level, &options)
                     .expect("2.0 lit surfaces");

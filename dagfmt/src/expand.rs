@@ -135,12 +135,25 @@ struct Chain {
     first_word: Vec<u64>,
     /// Words of the expanded level.
     words: u64,
+    /// Bit `b` set where a record starts at byte `b`, and per 64-bit word
+    /// the records starting before it: the ordinal of a record from its
+    /// offset in one lookup (a binary search of `starts` for every
+    /// reference took 8–11 s for the d14 dragon, in cache misses).
+    start_bits: Vec<u64>,
+    starts_before: Vec<u64>,
 }
 
 impl Chain {
     /// The ordinal of the record starting at byte `offset`, if one does.
     fn ordinal(&self, offset: u64) -> Option<u64> {
-        self.starts.binary_search(&offset).ok().map(|i| i as u64)
+        let word = usize::try_from(offset / 64).ok()?;
+        let bits = *self.start_bits.get(word)?;
+        let bit = offset % 64;
+        if bits >> bit & 1 == 0 {
+            return None;
+        }
+        let below = (bits & ((1u64 << bit) - 1)).count_ones();
+        Some(self.starts_before[word] + u64::from(below))
     }
 }
 
@@ -168,10 +181,22 @@ fn record_chain(view: &LevelView<'_>, depth: usize) -> Result<Chain, FormatError
     if words > MAX_INDEX + 1 {
         return Err(stop(depth, 0, "the expanded level is over 2^29 words"));
     }
+    let mut start_bits = vec![0u64; view.bytes.len().div_ceil(64)];
+    for &at in &starts {
+        start_bits[(at / 64) as usize] |= 1 << (at % 64);
+    }
+    let mut starts_before = Vec::with_capacity(start_bits.len());
+    let mut before = 0u64;
+    for bits in &start_bits {
+        starts_before.push(before);
+        before += u64::from(bits.count_ones());
+    }
     Ok(Chain {
         starts,
         first_word,
         words,
+        start_bits,
+        starts_before,
     })
 }
 

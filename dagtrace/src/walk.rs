@@ -391,9 +391,11 @@ impl Lanes {
 
 /// A ray tracer over one DAG. Cheap to share between threads (`Sync`).
 ///
-/// It borrows the file's bytes (zero-copy); the only thing computed when it is
-/// made is, for attribute kind 1, the voxel counts of the nodes whose stored
-/// count is saturated (at most one entry per such node in the file).
+/// It borrows the file's bytes (zero-copy); what it computes when it is made
+/// is, for attribute kind 1, the voxel counts of the nodes whose stored count
+/// is saturated (at most one entry per such node in the file), and for a 2.0
+/// file its expanded levels (spec §23.12, [`Tracer::from_v2_levels`]; shared
+/// by the tracer's clones) or, read in place, its record starts (§23.8).
 #[derive(Clone, Debug)]
 pub struct Tracer<'a> {
     pub(crate) levels: [Level<'a>; LEVEL_SLOTS],

@@ -12,7 +12,7 @@
 
 use std::time::Instant;
 
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 use dagfmt::mmap::MappedFile;
 use dagtrace::Tracer;
 
@@ -23,9 +23,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let runs: usize = runs.parse()?;
     let map = MappedFile::open(file.as_ref())?;
-    let dag = Dag::open(map.bytes())?;
+    // Either version (a 2.0 file traced through its expanded levels).
+    let dag = AnyDag::open(map.bytes())?;
     let rays = dagfmt::batch::parse_rays(&std::fs::read(rays)?)?;
-    let tracer = Tracer::new(&dag)?;
+    let tracer = Tracer::from_any(&dag)?;
     let mut hits = tracer.trace_batch(&rays)?;
     for _ in 0..runs {
         drop(hits);

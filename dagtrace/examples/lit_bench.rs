@@ -25,7 +25,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use dagfmt::Dag;
+use dagfmt::AnyDag;
 use dagfmt::batch::Ray;
 use dagfmt::mmap::MappedFile;
 use dagtrace::Tracer;
@@ -164,12 +164,21 @@ impl Mesh {
 
 fn run(args: Args) -> Result<(), String> {
     let file = MappedFile::open(&args.vdag).map_err(|e| format!("{}: {e}", args.vdag.display()))?;
-    let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", args.vdag.display()))?;
-    let tracer = Tracer::new(&dag)
+    // Either version (a 2.0 file traced through its expanded levels).
+    let dag = AnyDag::open(file.bytes()).map_err(|e| format!("{}: {e}", args.vdag.display()))?;
+    let tracer = Tracer::from_any(&dag)
         .map_err(|e| e.to_string())?
         .with_index(false);
     let (w, h) = (args.width, args.height);
-    let camera = Camera::automatic(&dag, f64::from(w) / f64::from(h));
+    let aspect = f64::from(w) / f64::from(h);
+    // The automatic camera, as `dagtrace render` makes it.
+    let camera = match &dag {
+        AnyDag::V1(d) => Camera::automatic(d, aspect),
+        AnyDag::V2(d) => match tracer.occupied_box() {
+            Some((lo, hi)) => Camera::looking_at_box(lo, hi, aspect),
+            None => Camera::looking_at_cube(d.header().root_min, d.header().root_size, aspect),
+        },
+    };
     let frame = camera.frame().map_err(|e| e.to_string())?;
     let options = LitOptions {
         ao_rays: args.ao_rays,
@@ -260,7 +269,7 @@ fn run(args: Args) -> Result<(), String> {
 
 #[cfg(feature = "gpu")]
 fn gpu(
-    dag: &Dag<'_>,
+    dag: &AnyDag<'_>,
     camera: &Camera,
     w: u32,
     h: u32,
@@ -268,13 +277,14 @@ fn gpu(
     runs: usize,
 ) -> Result<(), String> {
     use dagtrace::gpu::{GpuOptions, GpuTracer};
-    let gpu = GpuTracer::new(
-        dag,
-        &GpuOptions {
-            compute_index: false,
-            ..GpuOptions::default()
-        },
-    )
+    let options_gpu = GpuOptions {
+        compute_index: false,
+        ..GpuOptions::default()
+    };
+    let gpu = match dag {
+        AnyDag::V1(d) => GpuTracer::new(d, &options_gpu),
+        AnyDag::V2(d) => GpuTracer::new_v2(d.header(), d.levels(), d.color_table(), &options_gpu),
+    }
     .map_err(|e| e.to_string())?;
     // Compile and warm up.
     gpu.time_lit(camera, w, h, options, 1)
@@ -311,6 +321,6 @@ fn gpu(
 }
 
 #[cfg(not(feature = "gpu"))]
-fn gpu(_: &Dag<'_>, _: &Camera, _: u32, _: u32, _: &LitOptions, _: usize) -> Result<(), String> {
+fn gpu(_: &AnyDag<'_>, _: &Camera, _: u32, _: u32, _: &LitOptions, _: usize) -> Result<(), String> {
     Err("dagtrace was built without the `gpu` feature".into())
 }

@@ -34,13 +34,19 @@
 //! `--format2` instead compares format 2.0 with 1.0 (issue 42): it reads the
 //! 2.0 file of the same voxels (`--v2-file`, one 1.0 file) or makes it in
 //! memory (`dagfmt::v2file::upgrade`, what `dagtool upgrade` writes; its time
-//! is printed), and times the batch API of the
-//! 2.0 tracer ([`Tracer::from_v2`]) against the 1.0 tracer's, both
-//! on one core ([`Tracer::trace_sequential_into`]) and on all cores
-//! ([`Tracer::trace_batch_into`]), runs alternating as above; it prints the
+//! is printed), and times the batch API of two 2.0 tracers against the 1.0
+//! tracer's: through the expanded levels ([`Tracer::from_v2`], spec §23.12;
+//! the time and memory of the expansion are printed) and reading the file in
+//! place ([`Tracer::from_v2_in_place`]), all on one core
+//! ([`Tracer::trace_sequential_into`]) and on all cores
+//! ([`Tracer::trace_batch_into`]), runs alternating as above, each with the
+//! lanes of `--lanes` (`both` takes the tracers' own choice); it prints the
 //! medians and the median of the per-run ratios 2.0 / 1.0 of the rates, and
-//! checks that both give the same answers (up to the choice among exactly
+//! checks that all give the same answers (up to the choice among exactly
 //! tied cells that packets may make, counted).
+//!
+//! Without `--format2` a file may be of either version
+//! ([`Tracer::from_any`]; obvhs needs the mesh).
 //!
 //! `--gathers both` times the batch API twice in every run, its vector lanes
 //! reading with the gather instruction and with scalar loads
@@ -54,9 +60,9 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use dagfmt::Dag;
 use dagfmt::batch::{Hit, Ray};
 use dagfmt::mmap::MappedFile;
+use dagfmt::{AnyDag, Dag};
 use dagtrace::camera::Camera;
 use dagtrace::{Gathers, Lanes, Tracer};
 use glam::Vec3A;
@@ -378,11 +384,28 @@ fn run(args: Args) -> Result<(), String> {
     Ok(())
 }
 
-/// The ray sets of `dag` that `args` asks for: camera rays row by row, in
-/// tiles, random rays.
-fn ray_sets(args: &Args, dag: &Dag<'_>) -> Result<Vec<(String, Vec<Ray>)>, String> {
+/// The automatic camera of a file of either version (`tracer` is its
+/// tracer), as `dagtrace render` makes it.
+fn automatic_camera(dag: &AnyDag<'_>, tracer: &Tracer<'_>, aspect: f64) -> Camera {
+    match dag {
+        AnyDag::V1(d) => Camera::automatic(d, aspect),
+        AnyDag::V2(d) => match tracer.occupied_box() {
+            Some((lo, hi)) => Camera::looking_at_box(lo, hi, aspect),
+            None => Camera::looking_at_cube(d.header().root_min, d.header().root_size, aspect),
+        },
+    }
+}
+
+/// The ray sets of `dag` (whose tracer is `tracer`) that `args` asks for:
+/// camera rays row by row, in tiles, random rays.
+fn ray_sets(
+    args: &Args,
+    dag: &AnyDag<'_>,
+    tracer: &Tracer<'_>,
+) -> Result<Vec<(String, Vec<Ray>)>, String> {
     let header = dag.header();
-    let camera = Camera::automatic(dag, f64::from(args.width) / f64::from(args.height))
+    let aspect = f64::from(args.width) / f64::from(args.height);
+    let camera = automatic_camera(dag, tracer, aspect)
         .frame()
         .map_err(|e| e.to_string())?;
     let sets = [
@@ -436,34 +459,85 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
         return Err("the 2.0 file holds other voxels than the 1.0 file".to_string());
     }
     let v2_bytes: usize = dag2.levels().iter().map(|l| l.bytes.len()).sum();
+    let lanes = args.lanes.modes()[0].0;
+    let lanes = if args.lanes == LaneArg::Both {
+        Lanes::Auto
+    } else {
+        lanes
+    };
     let v1 = Tracer::new(&dag)
         .map_err(|e| e.to_string())?
-        .with_index(args.index);
+        .with_index(args.index)
+        .with_lanes(lanes);
+    // The expansion's time: the expanded tracer's making less the in-place
+    // one's (which builds the record starts), medians of three.
+    let mut making = [Vec::new(), Vec::new()];
+    for _ in 0..3 {
+        for (k, expand) in [true, false].into_iter().enumerate() {
+            let start = Instant::now();
+            let t = if expand {
+                Tracer::from_v2(&dag2)
+            } else {
+                Tracer::from_v2_in_place(&dag2)
+            };
+            making[k].push(start.elapsed().as_secs_f64());
+            drop(t);
+        }
+    }
+    let [made_expanded, made_in_place] = making.map(median);
     let v2 = Tracer::from_v2(&dag2)
         .map_err(|e| e.to_string())?
-        .with_index(args.index);
+        .with_index(args.index)
+        .with_lanes(lanes);
+    let v2_in_place = Tracer::from_v2_in_place(&dag2)
+        .map_err(|e| e.to_string())?
+        .with_index(args.index)
+        .with_lanes(lanes);
+    if !v2.is_expanded() {
+        return Err("the 2.0 file's levels do not expand".to_string());
+    }
     let header = dag.header();
     let v1_bytes: usize = dag.levels().iter().map(|l| l.bytes.len()).sum();
+    let v1_file = header.file_size;
+    let v2_file = dag2.header().file_size;
+    let expanded = v2.expanded_bytes();
     println!(
-        "{}: depth {}, {} voxels; level bytes 1.0 {v1_bytes}, 2.0 {v2_bytes} ({:.3}x; {made} in {encode_s:.1} s)",
+        "{}: depth {}, {} voxels; level bytes 1.0 {v1_bytes}, 2.0 {v2_bytes} ({:.3}x; {made} in {encode_s:.1} s); lanes {:?}",
         path.display(),
         header.depth,
         header.voxel_count,
-        v2_bytes as f64 / v1_bytes as f64
+        v2_bytes as f64 / v1_bytes as f64,
+        v1.lanes(),
     );
-    for (name, rays) in ray_sets(args, &dag)? {
+    println!(
+        "  expansion: {:.1} ms (tracer made in {:.1} ms expanded, {:.1} ms in place), {:.1} MB held = {:.3}x the 1.0 file ({:.1} MB), {:.3}x the 2.0 file ({:.1} MB)",
+        (made_expanded - made_in_place) * 1e3,
+        made_expanded * 1e3,
+        made_in_place * 1e3,
+        expanded as f64 / 1e6,
+        expanded as f64 / v1_file as f64,
+        v1_file as f64 / 1e6,
+        expanded as f64 / v2_file as f64,
+        v2_file as f64 / 1e6,
+    );
+    let any = AnyDag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
+    for (name, rays) in ray_sets(args, &any, &v1)? {
         let n = rays.len();
-        let mut hits = [vec![Hit::MISS; n], vec![Hit::MISS; n]];
-        let tracers = [(v1.clone(), String::new()), (v2.clone(), String::new())];
+        let mut hits = [vec![Hit::MISS; n], vec![Hit::MISS; n], vec![Hit::MISS; n]];
+        let tracers = [
+            (v1.clone(), String::new()),
+            (v2.clone(), String::new()),
+            (v2_in_place.clone(), String::new()),
+        ];
         let (one, all) = {
-            let [h1, h2] = &mut hits;
-            let mut f1 = || {
-                let _ = tracers[0].0.trace_sequential_into(&rays, h1);
-            };
-            let mut f2 = || {
-                let _ = tracers[1].0.trace_sequential_into(&rays, h2);
-            };
-            let one = alternate(args.runs, n, &mut [&mut f1, &mut f2]);
+            let mut sequential =
+                per_setting(&tracers, &rays, &mut hits, Tracer::trace_sequential_into);
+            let mut timed: Vec<&mut dyn FnMut()> = sequential
+                .iter_mut()
+                .map(|f| f as &mut dyn FnMut())
+                .collect();
+            let one = alternate(args.runs, n, &mut timed);
+            drop(sequential);
             let mut batch = per_setting(&tracers, &rays, &mut hits, Tracer::trace_batch_into);
             let mut timed: Vec<&mut dyn FnMut()> =
                 batch.iter_mut().map(|f| f as &mut dyn FnMut()).collect();
@@ -471,10 +545,10 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
             (one, all)
         };
         // Packets may pick another of exactly tied cells than `trace()`.
-        let differ = hits[0].iter().zip(&hits[1]).filter(|(a, b)| a != b).count();
-        if differ * 1000 > n {
+        let differ = [1, 2].map(|k| hits[0].iter().zip(&hits[k]).filter(|(a, b)| a != b).count());
+        if differ.iter().any(|&d| d * 1000 > n) {
             return Err(format!(
-                "{name}: 2.0 and 1.0 answer {differ} of {n} rays differently"
+                "{name}: 2.0 (expanded, in place) and 1.0 answer {differ:?} of {n} rays differently"
             ));
         }
         let hit_count = hits[1].iter().filter(|h| h.hit).count();
@@ -486,26 +560,31 @@ fn bench_versions(args: &Args, path: &Path) -> Result<(), String> {
             m(&all[0].0),
             100.0 * hit_count as f64 / n as f64
         );
-        println!(
-            "{name:>18}  2.0: 1 core {} / {}   all cores {}   ({differ} answers differ: ties)",
-            m(&one[1].0),
-            m(&one[1].1),
-            m(&all[1].0),
-        );
-        println!(
-            "{name:>18}  2.0 / 1.0 rate: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
-            ratio(&one[1].0, &one[0].0),
-            ratio(&one[1].1, &one[0].1),
-            ratio(&all[1].0, &all[0].0),
-        );
+        for (k, how) in [(1, "expanded"), (2, "in place")] {
+            println!(
+                "{name:>18}  2.0 {how}: 1 core {} / {}   all cores {}   ({} answers differ: ties)",
+                m(&one[k].0),
+                m(&one[k].1),
+                m(&all[k].0),
+                differ[k - 1],
+            );
+        }
+        for (k, how) in [(1, "expanded"), (2, "in place")] {
+            println!(
+                "{name:>18}  2.0 {how} / 1.0 rate: 1 core {:.3} / {:.3}   all cores {:.3}   (median of per-run ratios)",
+                ratio(&one[k].0, &one[0].0),
+                ratio(&one[k].1, &one[0].1),
+                ratio(&all[k].0, &all[0].0),
+            );
+        }
     }
     Ok(())
 }
 
 fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), String> {
     let file = MappedFile::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let dag = Dag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
-    let tracer = Tracer::new(&dag)
+    let dag = AnyDag::open(file.bytes()).map_err(|e| format!("{}: {e}", path.display()))?;
+    let tracer = Tracer::from_any(&dag)
         .map_err(|e| e.to_string())?
         .with_index(args.index);
     // Every combination of the gather and lane settings asked for.
@@ -537,7 +616,7 @@ fn bench_file(args: &Args, path: &Path, mesh: Option<&Mesh>) -> Result<(), Strin
             _ => "eight",
         }
     );
-    let sets = ray_sets(args, &dag)?;
+    let sets = ray_sets(args, &dag, &tracer)?;
     for (name, rays) in &sets {
         let n = rays.len();
         let mut mode_hits = vec![vec![Hit::MISS; n]; tracers.len()];

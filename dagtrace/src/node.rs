@@ -12,8 +12,9 @@
 //!
 //! # The interface
 //!
-//! - [`Level`]: one stored level, of a 1.0 file ([`Level::new`]) or of a 2.0
-//!   DAG ([`Level::new_v2`]). [`Level::header`] reads a node's header,
+//! - [`Level`]: one stored level, of a 1.0 file ([`Level::new`]), of a 2.0
+//!   DAG read in place ([`Level::new_v2`]), or of a 2.0 DAG's expanded levels
+//!   ([`Level::new_expanded`], [`Level::new_leaves`]; see below). [`Level::header`] reads a node's header,
 //!   [`child_mask`] and [`attribute`] split it; [`Level::child`] finds the
 //!   reference of a child (by its *physical* slot in the child mask) and
 //!   returns a [`ChildRef`]: the child's address in the next level, and the
@@ -40,6 +41,24 @@
 //! level), found by adding the sizes of its sequential siblings before it,
 //! read from their headers and codes in the child level. [`ChildRef::reflection`] is 0 for every 1.0
 //! file.
+//!
+//! # Expanded 2.0 levels
+//!
+//! A tracer of a 2.0 DAG normally traces its *expanded* node levels (spec
+//! §23.12, `dagfmt::expand::expand_levels`, made once when the tracer is
+//! made, held by the tracer with a copy of the leaf level in one
+//! allocation): one aligned 32-bit word per header and per child, the child
+//! of rank k of a node being the word `index << 3 | r` at its byte offset
+//! `4 + 4k`. [`Level::new_expanded`] keeps 2.0's addressing (a node's
+//! address is its header's byte offset, so that every `V2` path runs
+//! unchanged) and decodes a reference as `index << 2` (a record's byte
+//! offset in the expanded child level) or `index` (a leaf), with its
+//! reflection `r`: one load where the in-place decoding takes popcounts,
+//! unaligned bit reads and, for a sequential child, the record starts.
+//! [`Level::child_or_fault`], [`Level::child`] and [`Level::reference`]
+//! read either form; [`lanes`]' `expanded_reference_at` and
+//! `expanded_child` are the vector lanes' forms. Levels that do not expand
+//! (malformed ones) are read in place, reporting what they meet as before.
 //!
 //! The traversal contract (spec §23.4, §23.5):
 //!
@@ -87,6 +106,9 @@
 //!    [`RecordStarts`] (spec §23.8), built when the tracer is made. The
 //!    sixteen lanes decode 2.0 references with the same eight-lane forms,
 //!    on each half of their lanes.
+//!    Through expanded levels, both take the child's word with one gather
+//!    (`simd::expanded_reference`, [`lanes::Avx2::expanded_child`], and
+//!    [`lanes::Avx512`]'s forms for the sixteen lanes).
 //!    The packets (`packet`) carry R in every frame of the beam walk and of
 //!    the cells' walks (`BeamFrame`, `BeamCell`, `SubtreeFrame`) and in the
 //!    brick test (`Tracer::brick_in_node`), reading references through
@@ -230,8 +252,16 @@ pub(crate) struct Level<'a> {
     pointer_mask: u32,
     /// Shift from a node's address to its byte offset: 2 in 1.0, 0 in 2.0.
     address_shift: u32,
-    /// The 2.0 form of a node level, `None` in 1.0 and for leaves.
+    /// The 2.0 form of a node level, `None` in 1.0, for leaves and for
+    /// expanded levels.
     v2: Option<Coded<'a>>,
+    /// An expanded 2.0 node level (spec §23.12, [`Level::new_expanded`]):
+    /// `bytes` are its 32-bit words, a node's address is its header's byte
+    /// offset (as in 2.0), and a reference word `index << 3 | r` names the
+    /// child at address `index << shift`, with `shift` = 2 (a record's
+    /// byte offset in the expanded child level) or 0 (a leaf's index).
+    /// `None` for every other level.
+    expanded: Option<u32>,
 }
 
 /// What a 2.0 node level needs to find its children (spec §23.2, §23.3).
@@ -353,6 +383,7 @@ impl<'a> Level<'a> {
             pointer_mask: reference_mask(width),
             address_shift: HEADER_BYTES.trailing_zeros(),
             v2: None,
+            expanded: None,
         }
     }
 
@@ -415,7 +446,47 @@ impl<'a> Level<'a> {
             pointer_mask: 0,
             address_shift: 0,
             v2,
+            expanded: None,
         })
+    }
+
+    /// An expanded 2.0 node level (spec §23.12): `bytes` are the level's
+    /// words as `dagfmt::expand::expand_levels` gives them (little-endian),
+    /// `readable` the memory from its first byte to the end of the
+    /// allocation holding it (where the vector lanes may read past the
+    /// section), and `leaf_children` says whether the child level is the
+    /// leaf level (a reference's index is then a leaf's index, else the
+    /// word index of a record).
+    pub(crate) fn new_expanded(bytes: &'a [u8], readable: &'a [u8], leaf_children: bool) -> Self {
+        Level {
+            bytes,
+            readable,
+            file_offset: 0,
+            width: 4,
+            pointer_mask: u32::MAX,
+            address_shift: 0,
+            v2: None,
+            expanded: Some(if leaf_children { 0 } else { 2 }),
+        }
+    }
+
+    /// The leaf level of a 2.0 DAG traced through expanded node levels: a
+    /// copy of the file's leaf masks beside the expanded levels (see
+    /// `readable` at [`Level::new_expanded`]).
+    pub(crate) fn new_leaves(bytes: &'a [u8], readable: &'a [u8]) -> Self {
+        Level {
+            bytes,
+            readable,
+            ..Level::default()
+        }
+    }
+
+    /// For an expanded 2.0 node level, the shift from a reference's index
+    /// to the child's address (see [`Level::new_expanded`]); `None` for
+    /// every other level.
+    #[inline(always)]
+    pub(crate) fn expanded_shift(&self) -> Option<u32> {
+        self.expanded
     }
 
     /// The widths w_1, w_2, w_3 in bits of a 2.0 node level's references
@@ -425,10 +496,10 @@ impl<'a> Level<'a> {
         self.v2.as_ref().map_or([0; 3], |c| c.widths.map(i32::from))
     }
 
-    /// Whether the level is a 2.0 node level.
+    /// Whether the level is a 2.0 node level, in place or expanded.
     #[inline(always)]
     pub(crate) fn is_v2(&self) -> bool {
-        self.v2.is_some()
+        self.v2.is_some() || self.expanded.is_some()
     }
 
     /// The byte offset in the level of the node at `address`.
@@ -487,6 +558,16 @@ impl<'a> Level<'a> {
         fault: &mut Option<Fault>,
     ) -> ChildRef {
         if V2 {
+            if let Some(shift) = self.expanded {
+                // One aligned load (spec §23.12).
+                return match self.expanded_reference(level, word, child_rank(mask, child), shift) {
+                    Ok(v) => v,
+                    Err(f) => ChildRef {
+                        node: record(fault, f),
+                        reflection: 0,
+                    },
+                };
+            }
             match self.child_v2(level, word, child) {
                 Ok(v) => v,
                 Err(f) => ChildRef {
@@ -534,6 +615,9 @@ impl<'a> Level<'a> {
     /// the node at `word`.
     #[inline(always)]
     pub(crate) fn reference(&self, level: u8, word: u32, rank: u32) -> Result<ChildRef, Fault> {
+        if let Some(shift) = self.expanded {
+            return self.expanded_reference(level, word, rank, shift);
+        }
         if self.is_v2() {
             let mask = child_mask(self.header(level, word)?);
             return self.child_v2(level, word, nth_slot(mask, rank));
@@ -570,10 +654,41 @@ impl<'a> Level<'a> {
         mask: u8,
         child: u32,
     ) -> Result<ChildRef, Fault> {
+        if let Some(shift) = self.expanded {
+            return self.expanded_reference(level, word, child_rank(mask, child), shift);
+        }
         if self.is_v2() {
             return self.child_v2(level, word, child);
         }
         self.reference(level, word, child_rank(mask, child))
+    }
+
+    /// Reference number `rank` of the node at byte offset `address` of an
+    /// expanded level (spec §23.12): the word `index << 3 | r` after the
+    /// header, naming the child at `index << shift` (see
+    /// [`Level::new_expanded`]).
+    #[inline(always)]
+    fn expanded_reference(
+        &self,
+        level: u8,
+        address: u32,
+        rank: u32,
+        shift: u32,
+    ) -> Result<ChildRef, Fault> {
+        let at = address as usize + (HEADER_BYTES + 4 * rank) as usize;
+        match self.read_u32(at) {
+            Some(v) => Ok(ChildRef {
+                node: (v >> 3) << shift,
+                reflection: (v & 7) as u8,
+            }),
+            // (An expanded level's references all lie in it: only a node
+            // address from outside the level gets here.)
+            None => Err(Fault {
+                level,
+                at: u64::from(address),
+                truncated: true,
+            }),
+        }
     }
 
     /// [`Level::child`] in a 2.0 level: the reference of physical slot
@@ -671,6 +786,7 @@ impl<'a> Level<'a> {
         fault: &mut Option<Fault>,
     ) -> ChildRef {
         if self.is_v2() {
+            // (In place or expanded: `reference` reads either.)
             return match self.reference(level, word, rank) {
                 Ok(v) => v,
                 Err(f) => ChildRef {
@@ -845,6 +961,30 @@ pub(crate) mod lanes {
         pub(crate) fn reference_mask(width: __m256i) -> __m256i {
             let one = _mm256_set1_epi32(1);
             _mm256_sub_epi32(_mm256_sllv_epi32(one, _mm256_slli_epi32::<3>(width)), one)
+        }
+
+        /// Expanded 2.0 levels (spec §23.12, [`super::Level::new_expanded`]):
+        /// each lane's byte offset in its level of reference number `rank`
+        /// of the node at byte offset `address`.
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn expanded_reference_at(address: __m256i, rank: __m256i) -> __m256i {
+            _mm256_add_epi32(
+                _mm256_add_epi32(address, _mm256_set1_epi32(HEADER_BYTES as i32)),
+                _mm256_slli_epi32::<2>(rank),
+            )
+        }
+
+        /// Expanded 2.0 levels: each lane's child address and reflection
+        /// from its reference word `index << 3 | r`, the address `index <<
+        /// shift` (`shift` per lane: 2 for a node, 0 for a leaf).
+        #[inline]
+        #[target_feature(enable = "avx2")]
+        pub(crate) fn expanded_child(reference: __m256i, shift: __m256i) -> (__m256i, __m256i) {
+            (
+                _mm256_sllv_epi32(_mm256_srli_epi32::<3>(reference), shift),
+                _mm256_and_si256(reference, _mm256_set1_epi32(7)),
+            )
         }
     }
 
@@ -1078,6 +1218,26 @@ pub(crate) mod lanes {
         pub(crate) fn reference_mask(width: __m512i) -> __m512i {
             let one = _mm512_set1_epi32(1);
             _mm512_sub_epi32(_mm512_sllv_epi32(one, _mm512_slli_epi32::<3>(width)), one)
+        }
+
+        /// [`Avx2::expanded_reference_at`] on sixteen lanes.
+        #[inline]
+        #[target_feature(enable = "avx512f")]
+        pub(crate) fn expanded_reference_at(address: __m512i, rank: __m512i) -> __m512i {
+            _mm512_add_epi32(
+                _mm512_add_epi32(address, _mm512_set1_epi32(HEADER_BYTES as i32)),
+                _mm512_slli_epi32::<2>(rank),
+            )
+        }
+
+        /// [`Avx2::expanded_child`] on sixteen lanes.
+        #[inline]
+        #[target_feature(enable = "avx512f")]
+        pub(crate) fn expanded_child(reference: __m512i, shift: __m512i) -> (__m512i, __m512i) {
+            (
+                _mm512_sllv_epi32(_mm512_srli_epi32::<3>(reference), shift),
+                _mm512_and_si512(reference, _mm512_set1_epi32(7)),
+            )
         }
     }
 }

@@ -1719,23 +1719,29 @@ mod tests {
                     at += u64::from(node.size);
                 }
             }
-            let v2 = Tracer::from_v2_levels(dag.header(), &enc.views(), None).unwrap();
+            // Through the expanded levels (spec §23.12) and in place.
+            let expanded = Tracer::from_v2_levels(dag.header(), &enc.views(), None).unwrap();
+            let in_place =
+                Tracer::from_v2_levels_in_place(dag.header(), &enc.views(), None).unwrap();
+            assert!(expanded.is_expanded() && !in_place.is_expanded());
             let rays = packets(&mut rng, &centres, 60, PACKET_RAYS);
-            for (p, chunk) in rays.chunks(PACKET_RAYS).enumerate() {
-                let mut hits = vec![Hit::MISS; chunk.len()];
-                if v2.try_packet(chunk, &mut hits) {
-                    traced += 1;
-                } else {
-                    v2.trace_lanes(chunk, &mut hits).unwrap();
-                }
-                for (ray, hit) in chunk.iter().zip(&hits) {
-                    assert_eq!(*hit, v1.trace(ray).unwrap(), "packet {p}: {ray:?}");
-                    hit_count += usize::from(hit.hit);
-                    total += 1;
+            for v2 in [&expanded, &in_place] {
+                for (p, chunk) in rays.chunks(PACKET_RAYS).enumerate() {
+                    let mut hits = vec![Hit::MISS; chunk.len()];
+                    if v2.try_packet(chunk, &mut hits) {
+                        traced += 1;
+                    } else {
+                        v2.trace_lanes(chunk, &mut hits).unwrap();
+                    }
+                    for (ray, hit) in chunk.iter().zip(&hits) {
+                        assert_eq!(*hit, v1.trace(ray).unwrap(), "packet {p}: {ray:?}");
+                        hit_count += usize::from(hit.hit);
+                        total += 1;
+                    }
                 }
             }
         }
-        assert!(traced >= 120, "{traced} of 180 packets traced as packets");
+        assert!(traced >= 240, "{traced} of 360 packets traced as packets");
         assert!(hit_count * 10 >= total, "{hit_count} of {total} hit");
         assert!(reflected > 0, "no reflected references");
     }

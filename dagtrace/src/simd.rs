@@ -80,7 +80,12 @@
 //! sibling before it); references near their section's end, or wider than
 //! 32 bits, go to `node::Level::child_or_fault` in the scalar tail. The
 //! sixteen lanes ([`step_wide`] with `V2`) trace 2.0 likewise, decoding a
-//! reference with [`v2_reference`] on each half of their lanes.
+//! reference with [`v2_reference`] on each half of their lanes. A 2.0 DAG
+//! traced through its expanded levels (spec §23.12, `Sections::expanded`:
+//! the tracer holds them and a copy of the leaf level in one allocation,
+//! addressed from one base) runs the same `V2` steps, but a child's
+//! reference is one gathered word ([`expanded_reference`], in 512-bit form
+//! in [`step_wide`]), decoded by `node::lanes`' expanded forms.
 //!
 //! Left to do: `step` and `step_wide` still repeat each other's ~250 lines
 //! in 256- and 512-bit intrinsics (their 2.0 reference decoding is shared:
@@ -172,6 +177,12 @@ struct Sections {
     v2_end: [i32; LEVEL_TABLE],
     /// 2.0, per level: the widths w_1, w_2, w_3 of its references.
     v2_width: [[i32; LEVEL_TABLE]; 3],
+    /// Whether the 2.0 node levels are expanded (spec §23.12): a child's
+    /// reference is then one word, read by [`expanded_reference`].
+    expanded: bool,
+    /// Expanded levels, per level: the shift from a reference's index to
+    /// the child's address (`node::Level::expanded_shift`).
+    expanded_shift: [i32; LEVEL_TABLE],
     /// The leaf level.
     leaf_level: i32,
     /// An offset from `base` with eight readable bytes (the first leaf):
@@ -198,6 +209,8 @@ impl Sections {
             nodes: [0; LEVEL_TABLE],
             v2_end: [0; LEVEL_TABLE],
             v2_width: [[0; LEVEL_TABLE]; 3],
+            expanded: tracer.v2 && used[0].expanded_shift().is_some(),
+            expanded_shift: [0; LEVEL_TABLE],
             leaf_level: i32::from(tracer.leaf_level),
             spare: 0,
         };
@@ -229,6 +242,7 @@ impl Sections {
             for (j, w) in level.v2_widths().into_iter().enumerate() {
                 s.v2_width[j][l] = w;
             }
+            s.expanded_shift[l] = level.expanded_shift().unwrap_or(0) as i32;
         }
         if tracer.v2 {
             let leaves = &used[used.len() - 1];
@@ -1170,7 +1184,9 @@ unsafe fn step<const LOADS: bool, const V2: bool>(
         // The child's reference: its target and (2.0) the reflection it
         // carries; `cut`: the lanes whose reference is read by the scalar
         // tail.
-        let (pointer, child_reflection, cut) = if V2 {
+        let (pointer, child_reflection, cut) = if V2 && s.expanded {
+            expanded_reference::<LOADS>(s, base, level, word, rank, choose)
+        } else if V2 {
             v2_reference::<LOADS>(tracer, s, base, level, word, mask, rank, choose)
         } else {
             let fast_limit = by_level(&fast_limits, level);
@@ -1298,6 +1314,45 @@ unsafe fn step<const LOADS: bool, const V2: bool>(
     // LEVEL_SLOTS` in every lane (`frame_level` above).
     unsafe { out.write_back::<V2>(tracer, s, g, slow_bits & choose_bits) }?;
     Ok(done_bits)
+}
+
+/// The reference of the child of rank `rank` of each lane's node (at byte
+/// offset `word` of level `level`) in expanded 2.0 levels (spec §23.12): one
+/// gathered word, `index << 3 | r`, decoded by `node::lanes::Avx2`'s
+/// expanded forms, as `node::Level::child_or_fault` decodes it; the lanes
+/// whose word lies past `Sections::fast_limit` are left to that (`cut`).
+/// Returns the child addresses, reflections and `cut`.
+///
+/// # Safety
+///
+/// The processor must have AVX2; the levels as `step` has them (`Sections`
+/// addressing every level from `base`).
+#[inline]
+#[target_feature(enable = "avx2")]
+unsafe fn expanded_reference<const LOADS: bool>(
+    s: &Sections,
+    base: *const i32,
+    level: __m256i,
+    word: __m256i,
+    rank: __m256i,
+    lanes: __m256i,
+) -> (__m256i, __m256i, __m256i) {
+    let at = Avx2::expanded_reference_at(word, rank);
+    let cut = _mm256_cmpgt_epi32(at, by_level(&level_table(&s.fast_limit), level));
+    // SAFETY: the lanes read four bytes at `at <= fast_limit`, inside the
+    // readable bytes of a level that `Sections` addresses from `base`; with
+    // `LOADS` the others read `base` itself (as in `step`).
+    let reference = unsafe {
+        gather::<LOADS>(
+            _mm256_setzero_si256(),
+            base,
+            _mm256_add_epi32(by_level(&level_table(&s.offset), level), at),
+            _mm256_andnot_si256(cut, lanes),
+        )
+    };
+    let (pointer, reflection) =
+        Avx2::expanded_child(reference, by_level(&level_table(&s.expanded_shift), level));
+    (pointer, reflection, cut)
 }
 
 /// The per-level table `t` as [`by_level`] reads it.
@@ -1952,7 +2007,23 @@ unsafe fn step_wide<const LOADS: bool, const V2: bool>(
         // The child's reference: its target and (2.0) the reflection it
         // carries; `cut`: the lanes whose reference is read by the scalar
         // tail.
-        let (pointer, child_reflection, cut) = if V2 {
+        let (pointer, child_reflection, cut) = if V2 && s.expanded {
+            // `expanded_reference` of `step` on sixteen lanes.
+            let fast_limit = by_level_wide(&fast_limits, level);
+            let at = Avx512::expanded_reference_at(word, rank);
+            let cut = _mm512_cmpgt_epi32_mask(at, fast_limit);
+            let reference = gather_wide::<LOADS>(
+                zero,
+                base,
+                _mm512_add_epi32(by_level_wide(&offsets, level), at),
+                choose & !cut,
+            );
+            let shifts =
+                [0, 16].map(|i| _mm512_loadu_si512(s.expanded_shift[i..i + 16].as_ptr().cast()));
+            let (pointer, reflection) =
+                Avx512::expanded_child(reference, by_level_wide(&shifts, level));
+            (pointer, reflection, cut)
+        } else if V2 {
             // The 2.0 decoding of `step`, `v2_reference`, on each half of
             // the lanes: the very same operations per lane.
             let halves =

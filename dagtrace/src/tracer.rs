@@ -628,10 +628,17 @@ mod tests {
                     .zip(enc.views())
                     .all(|(a, b)| a.bytes == b.bytes)
             );
+            // Through the expanded levels (spec §23.12) and in place.
             let tracers = [
                 Tracer::from_v2_levels(dag2.header(), dag2.levels(), None).expect("2.0 tracer"),
                 Tracer::from_v2(&dag2).expect("2.0 tracer of the file"),
+                Tracer::from_v2_levels_in_place(dag2.header(), dag2.levels(), None)
+                    .expect("2.0 tracer"),
+                Tracer::from_v2_in_place(&dag2).expect("2.0 tracer of the file"),
             ];
+            for (i, v2) in tracers.iter().enumerate() {
+                assert_eq!(v2.is_expanded(), i < 2);
+            }
             let rays = rays(&mut rng, 3000);
             for v2 in &tracers {
                 let hits = lanes_agree_with_single_rays(v2, &rays);
@@ -681,6 +688,9 @@ mod tests {
             };
             let rays = rays(&mut rng, 40);
             errors += malformed_lanes_agree_with_single_rays(&tracer, &rays);
+            // In place, whether or not the levels expanded.
+            let in_place = Tracer::from_v2_in_place(&dag).expect("made as the other");
+            errors += malformed_lanes_agree_with_single_rays(&in_place, &rays);
             traced += 2;
         }
         assert!(

@@ -391,9 +391,11 @@ impl Lanes {
 
 /// A ray tracer over one DAG. Cheap to share between threads (`Sync`).
 ///
-/// It borrows the file's bytes (zero-copy); the only thing computed when it is
-/// made is, for attribute kind 1, the voxel counts of the nodes whose stored
-/// count is saturated (at most one entry per such node in the file).
+/// It borrows the file's bytes (zero-copy); what it computes when it is made
+/// is, for attribute kind 1, the voxel counts of the nodes whose stored count
+/// is saturated (at most one entry per such node in the file), and for a 2.0
+/// file its expanded levels (spec §23.12, [`Tracer::from_v2_levels`]; shared
+/// by the tracer's clones) or, read in place, its record starts (§23.8).
 #[derive(Clone, Debug)]
 pub struct Tracer<'a> {
     pub(crate) levels: [Level<'a>; LEVEL_SLOTS],
@@ -410,6 +412,10 @@ pub struct Tracer<'a> {
     /// accumulated reflection, the vector lanes run the 2.0 copies of
     /// `simd::step` and `simd::step_wide`.
     pub(crate) v2: bool,
+    /// The expanded node levels and the copy of the leaf level (spec
+    /// §23.12) that `levels` borrow, when a 2.0 DAG is traced through them
+    /// (see [`ExpandedLevels`]); `None` when `levels` borrow the file.
+    expanded: Option<ExpandedLevels>,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
     /// This tracer's number (shared by its clones, which read the same
@@ -436,6 +442,104 @@ pub struct Tracer<'a> {
     pub(crate) bounds: [(Vec3A, Vec3A); 8],
 }
 
+/// The expanded node levels of a 2.0 DAG and a copy of its leaf level
+/// (spec §23.12), in one allocation, so that the vector lanes address every
+/// level with 32-bit offsets from one base: level after level, each from a
+/// multiple of 8 bytes, then 64 zero bytes (where the lanes' loads near the
+/// end of the leaf level may read). The tracer that holds it (and its
+/// clones, which share it) borrows its levels from it as `Level`s.
+#[derive(Clone)]
+struct ExpandedLevels {
+    /// The words, little-endian in memory (as a file's bytes are).
+    words: std::sync::Arc<[u32]>,
+    /// Per level, root first, the leaf level last: its first word and its
+    /// words.
+    spans: Vec<(usize, usize)>,
+}
+
+impl std::fmt::Debug for ExpandedLevels {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ExpandedLevels")
+            .field("bytes", &(self.words.len() * 4))
+            .field("spans", &self.spans)
+            .finish()
+    }
+}
+
+impl ExpandedLevels {
+    /// The expansion of the 2.0 levels `levels` (root first, the leaf level
+    /// last, as `Tracer::from_v2_parts` checked them); `None` where
+    /// `dagfmt::expand::expand_levels` refuses them or the leaves are more
+    /// than 32-bit indices address (the tracer then reads them in place,
+    /// which reports what it meets).
+    fn new(levels: &[dagfmt::v2::LevelView<'_>]) -> Option<Self> {
+        let expanded = dagfmt::expand::expand_levels(levels).ok()?;
+        let leaves = levels.last()?.bytes;
+        let leaf_words = leaves.len() / 8 * 2;
+        if leaf_words / 2 > u32::MAX as usize {
+            return None;
+        }
+        let mut spans = Vec::with_capacity(expanded.len() + 1);
+        let mut total = 0usize;
+        for len in expanded.iter().map(|l| l.words.len()).chain([leaf_words]) {
+            spans.push((total, len));
+            total += len.next_multiple_of(2);
+        }
+        let mut words = Vec::with_capacity(total + 16);
+        for (level, &(start, _)) in expanded.into_iter().zip(&spans) {
+            words.resize(start, 0);
+            words.extend(level.words.into_iter().map(u32::to_le));
+        }
+        words.resize(spans[spans.len() - 1].0, 0);
+        // The leaf masks' bytes as they are in the file.
+        words.extend(
+            leaves[..leaf_words * 4]
+                .chunks_exact(4)
+                .map(|b| u32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
+        );
+        words.resize(total + 16, 0);
+        Some(ExpandedLevels {
+            words: words.into(),
+            spans,
+        })
+    }
+
+    /// The levels, root first, as the tracer reads them: the expanded node
+    /// levels ([`Level::new_expanded`]) and the leaf level
+    /// ([`Level::new_leaves`]).
+    ///
+    /// # Safety
+    ///
+    /// The `Level`s borrow `self.words` for `'a`, which the borrow checker
+    /// cannot see: the caller must keep `self` (or a clone, which shares the
+    /// words) alive as long as it holds them, and hand no slice of them out
+    /// for longer. `Tracer` does: it holds its `ExpandedLevels` beside its
+    /// `levels`, its clones clone both, and `Level` is private to the crate;
+    /// the words are never written (an `Arc<[u32]>`: the allocation neither
+    /// moves nor changes while it lives).
+    unsafe fn levels<'a>(&self) -> Vec<Level<'a>> {
+        // SAFETY: the words' memory, as bytes (any bytes are valid `u8`s),
+        // for as long as the caller keeps `self` (see above).
+        let all: &'a [u8] = unsafe {
+            std::slice::from_raw_parts(self.words.as_ptr().cast::<u8>(), self.words.len() * 4)
+        };
+        let nodes = self.spans.len() - 1;
+        self.spans
+            .iter()
+            .enumerate()
+            .map(|(i, &(start, len))| {
+                let bytes = &all[start * 4..(start + len) * 4];
+                let readable = &all[start * 4..];
+                if i < nodes {
+                    Level::new_expanded(bytes, readable, i + 1 == nodes)
+                } else {
+                    Level::new_leaves(bytes, readable)
+                }
+            })
+            .collect()
+    }
+}
+
 impl<'a> Tracer<'a> {
     /// Makes a tracer for `dag`. Fails only when, for attribute kind 1, the
     /// nodes with saturated counts lead to a pointer outside their level.
@@ -454,6 +558,7 @@ impl<'a> Tracer<'a> {
             dag_bytes,
             false,
             dag.color_table(),
+            None,
         )
     }
 
@@ -462,20 +567,45 @@ impl<'a> Tracer<'a> {
     /// `dagfmt::v2::Encoded::views` or a 2.0 reader gives them), with the
     /// header fields of `header` (depth, root cube, attribute kind; the rest
     /// is not read) and colours `colors`. Answers are those of the 1.0 DAG
-    /// of the same voxels. Fails when the levels do not fit the depth or a
-    /// level cannot be decoded (its widths), or as [`Tracer::new`]. The
-    /// offsets that errors of a malformed DAG report are inside the level
-    /// section named (the tracer does not know where the sections lie in a
-    /// file). [`Tracer::from_v2`] makes the tracer of a 2.0 file. (The
-    /// vector lanes address all levels with 32-bit offsets from one base:
-    /// levels in separate allocations further apart than that leave the
-    /// batches to the scalar steps, with the same answers.)
+    /// of the same voxels.
+    ///
+    /// The node levels are expanded once, here (spec §23.12,
+    /// `dagfmt::expand::expand_levels`): every path then reads a child's
+    /// reference as one aligned 32-bit word, as in 1.0, from memory the
+    /// tracer holds (4 bytes per node and per child, and a copy of the leaf
+    /// level, so that the vector lanes address every level from one base;
+    /// [`Tracer::expanded_bytes`]). Where the levels do not expand (a
+    /// malformed DAG), the tracer traces the level sections in place, as
+    /// [`Tracer::from_v2_levels_in_place`] does, and reports what it meets
+    /// there.
+    ///
+    /// Fails when the levels do not fit the depth or a level cannot be
+    /// decoded (its widths), or as [`Tracer::new`]. The offsets that errors
+    /// of a malformed DAG report are inside the level section named (the
+    /// tracer does not know where the sections lie in a file).
+    /// [`Tracer::from_v2`] makes the tracer of a 2.0 file.
     pub fn from_v2_levels(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
     ) -> Result<Self, TraceError> {
-        Self::from_v2_parts(header, levels, colors, None)
+        Self::from_v2_parts(header, levels, colors, None, true)
+    }
+
+    /// [`Tracer::from_v2_levels`] without the expansion: the tracer reads
+    /// the level sections in place, decoding each child's reference from
+    /// the bit-packed records (spec §23.2, §23.3; a sequential child of a
+    /// node level from the child level's record starts, §23.8). The same
+    /// answers, for less memory and more time a child. (The vector lanes
+    /// address all levels with 32-bit offsets from one base: levels in
+    /// separate allocations further apart than that leave the batches to
+    /// the scalar steps, with the same answers.)
+    pub fn from_v2_levels_in_place(
+        header: &dagfmt::Header,
+        levels: &[dagfmt::v2::LevelView<'a>],
+        colors: Option<ColorTable<'a>>,
+    ) -> Result<Self, TraceError> {
+        Self::from_v2_parts(header, levels, colors, None, false)
     }
 
     /// The tracer of a file of either version: [`Tracer::new`] for 1.x,
@@ -487,25 +617,55 @@ impl<'a> Tracer<'a> {
         }
     }
 
-    /// The tracer of the 2.0 file `dag` ([`Tracer::from_v2_levels`] of its
-    /// levels, header and colours; knowing the whole file, the vector lanes
-    /// gather the records at the end of a level section with the bytes that
-    /// follow it, rather than read them one by one).
+    /// The tracer of the 2.0 file `dag`: [`Tracer::from_v2_levels`] of its
+    /// levels, header and colours (its node levels expanded where they
+    /// expand).
     pub fn from_v2(dag: &dagfmt::Dag2<'a>) -> Result<Self, TraceError> {
         Self::from_v2_parts(
             dag.header(),
             dag.levels(),
             dag.color_table(),
             Some(dag.bytes()),
+            true,
         )
     }
 
-    /// [`Tracer::from_v2_levels`] of levels inside `file`, where known.
+    /// The tracer of the 2.0 file `dag` reading its level sections in place
+    /// ([`Tracer::from_v2_levels_in_place`]; knowing the whole file, the
+    /// vector lanes gather the records at the end of a level section with
+    /// the bytes that follow it, rather than read them one by one).
+    pub fn from_v2_in_place(dag: &dagfmt::Dag2<'a>) -> Result<Self, TraceError> {
+        Self::from_v2_parts(
+            dag.header(),
+            dag.levels(),
+            dag.color_table(),
+            Some(dag.bytes()),
+            false,
+        )
+    }
+
+    /// Whether the tracer traces a 2.0 DAG through its expanded levels
+    /// (spec §23.12; see [`Tracer::from_v2_levels`]).
+    pub fn is_expanded(&self) -> bool {
+        self.expanded.is_some()
+    }
+
+    /// Bytes of the memory the tracer holds for the expanded levels: their
+    /// words and the copy of the leaf level (0 when it reads the file in
+    /// place).
+    pub fn expanded_bytes(&self) -> usize {
+        self.expanded.as_ref().map_or(0, |e| e.words.len() * 4)
+    }
+
+    /// [`Tracer::from_v2_levels`] (`expand`) or
+    /// [`Tracer::from_v2_levels_in_place`] of levels inside `file`, where
+    /// known.
     fn from_v2_parts(
         header: &dagfmt::Header,
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
         file: Option<&'a [u8]>,
+        expand: bool,
     ) -> Result<Self, TraceError> {
         let malformed = |message: String| {
             TraceError::Malformed(FormatError::new(ErrorCode::BadLevelSections, 0, message))
@@ -524,14 +684,32 @@ impl<'a> Tracer<'a> {
                 levels.len()
             )));
         }
+        let empty = levels.last().is_none_or(|l| l.bytes.is_empty());
+        if expand && let Some(expanded) = ExpandedLevels::new(levels) {
+            let mut slots: [Level<'a>; LEVEL_SLOTS] = std::array::from_fn(|_| Level::default());
+            // SAFETY: `expanded` goes into the tracer with the levels that
+            // borrow it (`ExpandedLevels::levels`).
+            for (slot, level) in slots.iter_mut().zip(unsafe { expanded.levels() }) {
+                *slot = level;
+            }
+            let dag_bytes = expanded.words.len() * 4;
+            return Self::from_parts(
+                slots,
+                header,
+                empty,
+                dag_bytes,
+                true,
+                colors,
+                Some(expanded),
+            );
+        }
         let mut slots: [Level<'a>; LEVEL_SLOTS] = std::array::from_fn(|_| Level::default());
         for (i, (slot, view)) in slots.iter_mut().zip(levels).enumerate() {
             *slot = Level::new_v2(view, levels.get(i + 1), file)
                 .map_err(|e| TraceError::Malformed(e.at_level(i as u8)))?;
         }
-        let empty = levels.last().is_none_or(|l| l.bytes.is_empty());
         let dag_bytes = levels.iter().map(|l| l.bytes.len()).sum::<usize>();
-        Self::from_parts(slots, header, empty, dag_bytes, true, colors)
+        Self::from_parts(slots, header, empty, dag_bytes, true, colors, None)
     }
 
     /// The rest of [`Tracer::new`] and [`Tracer::from_v2_levels`].
@@ -542,6 +720,7 @@ impl<'a> Tracer<'a> {
         dag_bytes: usize,
         v2: bool,
         colors: Option<ColorTable<'a>>,
+        expanded: Option<ExpandedLevels>,
     ) -> Result<Self, TraceError> {
         let depth = header.depth;
         let mut cell_size = [0f32; MAX_STORED_LEVELS + 2];
@@ -562,6 +741,7 @@ impl<'a> Tracer<'a> {
             grid_scale: (1u64 << depth) as f64 / header.root_size,
             cell_size,
             v2,
+            expanded,
             saturated: FxHashMap::default(),
             id: NEXT_TRACER_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             compute_index: true,

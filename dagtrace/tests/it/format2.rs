@@ -2,8 +2,11 @@
 //! (`dagfmt::v2::encode`, read through `Tracer::from_v2_levels`) gives exactly
 //! the 1.0 tracer's answers (hit, t, cell, face, attribute index) in every
 //! path: per ray, any-hit, the batch API with eight and sixteen lanes and
-//! both ways of gathering, coherent runs (packets in 1.0), and the
-//! occupancy window of the lit renderer.
+//! both ways of gathering, coherent runs (packets), and the occupancy window
+//! of the lit renderer; both through the expanded levels (spec §23.12, what
+//! `from_v2_levels` makes) and reading the levels in place
+//! (`from_v2_levels_in_place`). Damaged levels, which do not expand, are
+//! traced in place, with the in-place tracer's answers and errors.
 
 use std::path::Path;
 
@@ -35,18 +38,37 @@ fn reflected_references(enc: &Encoded) -> usize {
     reflected
 }
 
-/// The tracer of the 2.0 levels of `enc`, with `dag`'s header and colours.
-fn tracer_v2<'a>(dag: &Dag<'a>, enc: &'a Encoded) -> Tracer<'a> {
-    Tracer::from_v2_levels(dag.header(), &enc.views(), dag.color_table())
-        .expect("2.0 levels of a valid DAG make a tracer")
+/// The tracers of the 2.0 levels of `enc`, with `dag`'s header and colours:
+/// through the expanded levels, and reading the levels in place.
+fn tracers_v2<'a>(dag: &Dag<'a>, enc: &'a Encoded) -> [Tracer<'a>; 2] {
+    let expanded = Tracer::from_v2_levels(dag.header(), &enc.views(), dag.color_table())
+        .expect("2.0 levels of a valid DAG make a tracer");
+    assert!(expanded.is_expanded(), "the levels of a valid DAG expand");
+    let in_place = Tracer::from_v2_levels_in_place(dag.header(), &enc.views(), dag.color_table())
+        .expect("2.0 levels of a valid DAG make a tracer");
+    assert!(!in_place.is_expanded());
+    [expanded, in_place]
 }
 
 /// Checks every path of the 2.0 tracer of `dag`'s voxels against the 1.0
 /// tracer's per-ray answers on `rays`; returns the number of hits.
 fn check_same_answers(name: &str, dag: &Dag<'_>, rays: &[Ray]) -> usize {
     let enc = encode(dag).expect("valid DAG encodes");
+    let mut hits = 0;
+    for v2 in tracers_v2(dag, &enc) {
+        let how = if v2.is_expanded() {
+            "expanded"
+        } else {
+            "in place"
+        };
+        hits = check_tracer(&format!("{name}, {how}"), dag, &v2, rays);
+    }
+    hits
+}
+
+/// [`check_same_answers`] for one 2.0 tracer `v2` of `dag`'s voxels.
+fn check_tracer(name: &str, dag: &Dag<'_>, v2: &Tracer<'_>, rays: &[Ray]) -> usize {
     let v1 = Tracer::new(dag).expect("tracer");
-    let v2 = tracer_v2(dag, &enc);
     // Per ray, errors included (conformance rays may ask for a level deeper
     // than the DAG); the batches take the rays that trace.
     for ray in rays {
@@ -210,7 +232,9 @@ fn conformance_scenes_answer_alike_in_both_versions() {
 }
 
 /// Damaged 2.0 levels (cut short, bytes flipped) never panic the tracer: it
-/// answers or reports the DAG as malformed; bad widths are refused.
+/// answers or reports the DAG as malformed, exactly as the tracer reading
+/// the levels in place does (per ray and in batches); bad widths are
+/// refused.
 #[test]
 fn damaged_v2_levels_never_panic() {
     let mut rng = Rng(0xbad2);
@@ -222,7 +246,7 @@ fn damaged_v2_levels_never_panic() {
     let rays: Vec<Ray> = (0..100)
         .map(|_| random_ray(depth, &voxels, [0.0; 3], 1.0, &mut rng))
         .collect();
-    let mut faults = 0;
+    let (mut faults, mut expanded) = (0, 0);
     for round in 0..60 {
         let mut damaged = enc.clone();
         let level = round % damaged.levels.len();
@@ -239,17 +263,31 @@ fn damaged_v2_levels_never_panic() {
                 section[at] ^= 1 << rng.below(8);
             }
         }
-        let Ok(tracer) = Tracer::from_v2_levels(dag.header(), &damaged.views(), None) else {
+        let views = damaged.views();
+        let in_place = Tracer::from_v2_levels_in_place(dag.header(), &views, None);
+        let Ok(tracer) = Tracer::from_v2_levels(dag.header(), &views, None) else {
+            // Refused exactly as in place.
+            assert_eq!(
+                in_place.err(),
+                Tracer::from_v2_levels(dag.header(), &views, None).err()
+            );
             faults += 1;
             continue;
         };
+        let in_place = in_place.expect("made where the expanded tracer is");
+        // What expands answers as the levels read in place; what does not is
+        // traced in place.
+        expanded += usize::from(tracer.is_expanded());
         for ray in &rays {
-            faults += usize::from(tracer.trace(ray).is_err());
-            let _ = tracer.occluded(ray);
+            let answer = tracer.trace(ray);
+            assert_eq!(answer, in_place.trace(ray), "round {round}: {ray:?}");
+            faults += usize::from(answer.is_err());
+            assert_eq!(tracer.occluded(ray), in_place.occluded(ray));
         }
-        let _ = tracer.trace_batch(&rays);
+        assert_eq!(tracer.trace_batch(&rays), in_place.trace_batch(&rays));
     }
     assert!(faults > 0, "no damage was ever noticed");
+    assert!(expanded > 0, "no damaged level ever expanded");
     // Widths out of 1..=40, and levels that do not fit the depth, are refused.
     let mut bad = enc.clone();
     bad.levels[0].widths = [0, 3, 41];

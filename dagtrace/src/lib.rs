@@ -43,4 +43,4 @@ mod tracer;
 mod walk;
 
 pub use dagfmt::batch::{Hit, Ray};
-pub use walk::{Gathers, Lanes, TraceError, Tracer};
+pub use walk::{Expansion, Gathers, Lanes, TraceError, Tracer};

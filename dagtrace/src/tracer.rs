@@ -628,17 +628,25 @@ mod tests {
                     .zip(enc.views())
                     .all(|(a, b)| a.bytes == b.bytes)
             );
-            // Through the expanded levels (spec §23.12) and in place.
+            // Through the expanded levels (spec §23.12), made here or
+            // shared, and in place.
+            let expansion = crate::Expansion::new(dag2.levels()).expect("a valid DAG expands");
             let tracers = [
                 Tracer::from_v2_levels(dag2.header(), dag2.levels(), None).expect("2.0 tracer"),
                 Tracer::from_v2(&dag2).expect("2.0 tracer of the file"),
+                Tracer::from_v2_expansion(&dag2, &expansion).expect("2.0 tracer, shared"),
                 Tracer::from_v2_levels_in_place(dag2.header(), dag2.levels(), None)
                     .expect("2.0 tracer"),
                 Tracer::from_v2_in_place(&dag2).expect("2.0 tracer of the file"),
             ];
             for (i, v2) in tracers.iter().enumerate() {
-                assert_eq!(v2.is_expanded(), i < 2);
+                assert_eq!(v2.is_expanded(), i < 3);
             }
+            assert_eq!(tracers[2].expanded_bytes(), expansion.bytes());
+            // An expansion of other levels is refused, not traced.
+            let other = dagfmt::v2file::upgrade(&Dag::open(&scene(&mut rng)).unwrap()).unwrap();
+            let other = dagfmt::Dag2::open(&other).unwrap();
+            assert!(Tracer::from_v2_expansion(&other, &expansion).is_err());
             let rays = rays(&mut rng, 3000);
             for v2 in &tracers {
                 let hits = lanes_agree_with_single_rays(v2, &rays);

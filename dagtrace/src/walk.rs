@@ -414,8 +414,8 @@ pub struct Tracer<'a> {
     pub(crate) v2: bool,
     /// The expanded node levels and the copy of the leaf level (spec
     /// §23.12) that `levels` borrow, when a 2.0 DAG is traced through them
-    /// (see [`ExpandedLevels`]); `None` when `levels` borrow the file.
-    expanded: Option<ExpandedLevels>,
+    /// (see [`Expansion`]); `None` when `levels` borrow the file.
+    expanded: Option<Expansion>,
     /// Voxel counts of saturated nodes, keyed by (level, word).
     saturated: FxHashMap<(u8, u32), u64>,
     /// This tracer's number (shared by its clones, which read the same
@@ -448,31 +448,49 @@ pub struct Tracer<'a> {
 /// multiple of 8 bytes, then 64 zero bytes (where the lanes' loads near the
 /// end of the leaf level may read). The tracer that holds it (and its
 /// clones, which share it) borrows its levels from it as `Level`s.
+///
+/// Made by [`Expansion::new`] for tracers that share it
+/// ([`Tracer::from_v2_expansion`]): a program that makes many tracers of one
+/// file (the Python package makes one per call) expands it once.
 #[derive(Clone)]
-struct ExpandedLevels {
+pub struct Expansion {
     /// The words, little-endian in memory (as a file's bytes are).
     words: std::sync::Arc<[u32]>,
     /// Per level, root first, the leaf level last: its first word and its
     /// words.
     spans: Vec<(usize, usize)>,
+    /// The byte lengths of the level sections it was made from, which a
+    /// tracer checks it is given with.
+    source: Vec<usize>,
 }
 
-impl std::fmt::Debug for ExpandedLevels {
+impl std::fmt::Debug for Expansion {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ExpandedLevels")
+        f.debug_struct("Expansion")
             .field("bytes", &(self.words.len() * 4))
             .field("spans", &self.spans)
             .finish()
     }
 }
 
-impl ExpandedLevels {
+/// Whether a 2.0 tracer reads expanded levels, and whose.
+#[derive(Clone, Copy)]
+enum Expand<'e> {
+    /// Read the level sections in place.
+    No,
+    /// Expand them (where they expand).
+    Here,
+    /// Read this expansion of them.
+    Given(&'e Expansion),
+}
+
+impl Expansion {
     /// The expansion of the 2.0 levels `levels` (root first, the leaf level
-    /// last, as `Tracer::from_v2_parts` checked them); `None` where
+    /// last, as a 2.0 reader gives them); `None` where
     /// `dagfmt::expand::expand_levels` refuses them or the leaves are more
     /// than 32-bit indices address (the tracer then reads them in place,
     /// which reports what it meets).
-    fn new(levels: &[dagfmt::v2::LevelView<'_>]) -> Option<Self> {
+    pub fn new(levels: &[dagfmt::v2::LevelView<'_>]) -> Option<Self> {
         let expanded = dagfmt::expand::expand_levels(levels).ok()?;
         let leaves = levels.last()?.bytes;
         let leaf_words = leaves.len() / 8 * 2;
@@ -498,10 +516,17 @@ impl ExpandedLevels {
                 .map(|b| u32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
         );
         words.resize(total + 16, 0);
-        Some(ExpandedLevels {
+        Some(Expansion {
             words: words.into(),
             spans,
+            source: levels.iter().map(|l| l.bytes.len()).collect(),
         })
+    }
+
+    /// Bytes of memory it holds: the expanded words and the copy of the
+    /// leaf level.
+    pub fn bytes(&self) -> usize {
+        self.words.len() * 4
     }
 
     /// The levels, root first, as the tracer reads them: the expanded node
@@ -513,7 +538,7 @@ impl ExpandedLevels {
     /// The `Level`s borrow `self.words` for `'a`, which the borrow checker
     /// cannot see: the caller must keep `self` (or a clone, which shares the
     /// words) alive as long as it holds them, and hand no slice of them out
-    /// for longer. `Tracer` does: it holds its `ExpandedLevels` beside its
+    /// for longer. `Tracer` does: it holds its `Expansion` beside its
     /// `levels`, its clones clone both, and `Level` is private to the crate;
     /// the words are never written (an `Arc<[u32]>`: the allocation neither
     /// moves nor changes while it lives).
@@ -589,7 +614,7 @@ impl<'a> Tracer<'a> {
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
     ) -> Result<Self, TraceError> {
-        Self::from_v2_parts(header, levels, colors, None, true)
+        Self::from_v2_parts(header, levels, colors, None, Expand::Here)
     }
 
     /// [`Tracer::from_v2_levels`] without the expansion: the tracer reads
@@ -605,7 +630,7 @@ impl<'a> Tracer<'a> {
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
     ) -> Result<Self, TraceError> {
-        Self::from_v2_parts(header, levels, colors, None, false)
+        Self::from_v2_parts(header, levels, colors, None, Expand::No)
     }
 
     /// The tracer of a file of either version: [`Tracer::new`] for 1.x,
@@ -626,7 +651,24 @@ impl<'a> Tracer<'a> {
             dag.levels(),
             dag.color_table(),
             Some(dag.bytes()),
-            true,
+            Expand::Here,
+        )
+    }
+
+    /// The tracer of the 2.0 file `dag` through `expansion`, the
+    /// [`Expansion`] of its levels made before (and shared: nothing is
+    /// expanded here). Fails when `expansion` was made from other level
+    /// sections, or as [`Tracer::from_v2`].
+    pub fn from_v2_expansion(
+        dag: &dagfmt::Dag2<'a>,
+        expansion: &Expansion,
+    ) -> Result<Self, TraceError> {
+        Self::from_v2_parts(
+            dag.header(),
+            dag.levels(),
+            dag.color_table(),
+            Some(dag.bytes()),
+            Expand::Given(expansion),
         )
     }
 
@@ -640,7 +682,7 @@ impl<'a> Tracer<'a> {
             dag.levels(),
             dag.color_table(),
             Some(dag.bytes()),
-            false,
+            Expand::No,
         )
     }
 
@@ -665,7 +707,7 @@ impl<'a> Tracer<'a> {
         levels: &[dagfmt::v2::LevelView<'a>],
         colors: Option<ColorTable<'a>>,
         file: Option<&'a [u8]>,
-        expand: bool,
+        expand: Expand<'_>,
     ) -> Result<Self, TraceError> {
         let malformed = |message: String| {
             TraceError::Malformed(FormatError::new(ErrorCode::BadLevelSections, 0, message))
@@ -685,10 +727,27 @@ impl<'a> Tracer<'a> {
             )));
         }
         let empty = levels.last().is_none_or(|l| l.bytes.is_empty());
-        if expand && let Some(expanded) = ExpandedLevels::new(levels) {
+        let expanded = match expand {
+            Expand::No => None,
+            Expand::Here => Expansion::new(levels),
+            Expand::Given(e) => {
+                let same = e.source.len() == levels.len()
+                    && e.source
+                        .iter()
+                        .zip(levels)
+                        .all(|(&n, l)| n == l.bytes.len());
+                if !same {
+                    return Err(malformed(
+                        "the expansion given was made from other level sections".to_string(),
+                    ));
+                }
+                Some(e.clone())
+            }
+        };
+        if let Some(expanded) = expanded {
             let mut slots: [Level<'a>; LEVEL_SLOTS] = std::array::from_fn(|_| Level::default());
             // SAFETY: `expanded` goes into the tracer with the levels that
-            // borrow it (`ExpandedLevels::levels`).
+            // borrow it (`Expansion::levels`).
             for (slot, level) in slots.iter_mut().zip(unsafe { expanded.levels() }) {
                 *slot = level;
             }
@@ -720,7 +779,7 @@ impl<'a> Tracer<'a> {
         dag_bytes: usize,
         v2: bool,
         colors: Option<ColorTable<'a>>,
-        expanded: Option<ExpandedLevels>,
+        expanded: Option<Expansion>,
     ) -> Result<Self, TraceError> {
         let depth = header.depth;
         let mut cell_size = [0f32; MAX_STORED_LEVELS + 2];

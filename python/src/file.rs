@@ -63,6 +63,11 @@ pub struct PyDag {
     pub(crate) header: dagfmt::reader::Header,
     /// The GPU tracer, made on the first `backend="gpu"` call and kept.
     pub(crate) gpu: Mutex<Option<Arc<dagtrace::gpu::GpuTracer>>>,
+    /// A 2.0 file's expanded levels (spec §23.12), made on the first CPU
+    /// trace or render and kept, so that each call's tracer does not expand
+    /// the file again (`None` inside: the levels do not expand, and are
+    /// traced in place).
+    pub(crate) expansion: std::sync::OnceLock<Option<dagtrace::Expansion>>,
 }
 
 impl PyDag {
@@ -134,6 +139,7 @@ pub fn open(py: Python<'_>, path: PathBuf, validate: bool) -> PyResult<PyDag> {
         path: name,
         header,
         gpu: Mutex::new(None),
+        expansion: std::sync::OnceLock::new(),
     })
 }
 

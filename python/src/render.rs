@@ -129,7 +129,7 @@ impl PyDag {
             None
         };
         let pixels = py.detach(|| -> Result<Vec<u8>, String> {
-            let tracer = cpu_tracer(&dag).map_err(|e| e.to_string())?;
+            let tracer = cpu_tracer(&dag, &self.expansion).map_err(|e| e.to_string())?;
             let aspect = f64::from(v.width) / f64::from(v.height);
             let camera = match (v.camera_pos, v.look_at) {
                 (Some(position), Some(look_at)) => Camera {

@@ -241,11 +241,21 @@ impl PyDag {
 }
 
 /// Checks a level of detail against the file's depth.
-/// The CPU tracer of a file of either version: a 2.0 file's levels are
-/// traced as they are (`Tracer::from_v2`), with the answers of the 1.0 file
-/// of the same voxels.
-pub(crate) fn cpu_tracer<'a>(dag: &AnyDag<'a>) -> Result<Tracer<'a>, TraceError> {
-    Tracer::from_any(dag)
+/// The CPU tracer of a file of either version, with the answers of the 1.0
+/// file of the same voxels: a 2.0 file is traced through its expanded levels
+/// (spec §23.12), made once per `Dag` and kept in `expansion`, or in place
+/// where they do not expand.
+pub(crate) fn cpu_tracer<'a>(
+    dag: &AnyDag<'a>,
+    expansion: &std::sync::OnceLock<Option<dagtrace::Expansion>>,
+) -> Result<Tracer<'a>, TraceError> {
+    match dag {
+        AnyDag::V1(d) => Tracer::new(d),
+        AnyDag::V2(d) => match expansion.get_or_init(|| dagtrace::Expansion::new(d.levels())) {
+            Some(e) => Tracer::from_v2_expansion(d, e),
+            None => Tracer::from_v2_in_place(d),
+        },
+    }
 }
 
 pub(crate) fn check_level(level: Option<u8>, depth: u8) -> PyResult<()> {
@@ -312,7 +322,7 @@ impl PyDag {
                     columns.fill(0, &gpu.trace(&rays).map_err(|e| e.to_string())?);
                 }
                 None => {
-                    let tracer = cpu_tracer(&dag).map_err(|e| e.to_string())?;
+                    let tracer = cpu_tracer(&dag, &self.expansion).map_err(|e| e.to_string())?;
                     let mut rays = Vec::with_capacity(CHUNK_RAYS.min(n));
                     let mut hits = vec![Hit::MISS; CHUNK_RAYS.min(n)];
                     for first in (0..n).step_by(CHUNK_RAYS) {

@@ -66,6 +66,9 @@ use dagfmt::layout::{self, AttributeKind, MAX_LEAF_COUNT, MAX_NODE_LEVEL_BYTES};
 use dagfmt::packed_colors::{PackedColorEncoder, PackedSummary};
 use dagfmt::stats::LevelStats;
 use hashbrown::HashTable;
+use rayon::prelude::*;
+
+use crate::dedup::ShardedTable;
 
 use crate::error::ConvertError;
 
@@ -1712,27 +1715,30 @@ impl Merger<'_> {
 // ---------------------------------------------------------------------------
 // The merge in memory.
 
-/// Joins runs like [`RunMerge`], but in memory, without temporary files: one
-/// hash table of distinct records per level, filled run after run. Each run
-/// gives its records bottom-up (leaves, then each level up to the split
-/// level, children as the indices [`MemoryMerge::leaf`] and
-/// [`MemoryMerge::node`] returned for them), then its roots. A record gets
-/// the next index of its level the first time it is seen, so the indices
-/// are the first-seen order of the runs in order, each in its own order:
-/// the order of one in-memory build of all their voxels (as in the
-/// out-of-core merge), and the file is that build's, byte for byte.
+/// Joins runs like [`RunMerge`], but in memory, without temporary files: the
+/// distinct records of each level in a hash-sharded table
+/// ([`crate::dedup::ShardedTable`], looked up on every core), filled run after
+/// run. Each run gives its records bottom-up, one level at a time (its leaves
+/// to [`MemoryMerge::leaves`], then each level up to the split level to
+/// [`MemoryMerge::nodes`], children as the indices returned for the level
+/// below), then its roots. A record gets the next index of its level the
+/// first time it is seen, so the indices are the first-seen order of the
+/// runs in order, each in its own order: the order of one in-memory build of
+/// all their voxels (as in the out-of-core merge), and the file is that
+/// build's, byte for byte, however many threads ran.
 ///
 /// It holds every distinct record of the levels `split ..= D − 2` as words
-/// (header, then child indices) and a hash-table slot per record (its index
-/// and offset, so that a lookup reads the table and then the record: no
-/// third access); [`MemoryMerge::estimate`] bounds that from the runs' sizes, so a
-/// caller can choose it when it fits its memory and [`RunMerge`] otherwise.
+/// (header, then child indices), each record's offset, and a table slot per
+/// record (its index and offset, so that a lookup reads the table and then
+/// the record: no third access); [`MemoryMerge::estimate`] bounds that from
+/// the runs' sizes, so a caller can choose it when it fits its memory and
+/// [`RunMerge`] otherwise.
 pub struct MemoryMerge {
     depth: u8,
     attributes: AttributeKind,
     split: u8,
     leaves: Vec<u64>,
-    leaf_table: HashTable<u32>,
+    leaf_table: ShardedTable,
     /// Levels `split .. D − 2`, index `level − split`.
     nodes: Vec<NodeLevel>,
     /// Per root: Morton code of its level-`split` cell, index, voxel count.
@@ -1756,16 +1762,34 @@ struct NodeLevel {
     /// Each record's header word, then its children's indices in the level
     /// below.
     words: Vec<u32>,
-    /// Records so far.
-    records: u32,
-    /// Per record: its index (high half) and its offset in `words` (low half).
-    table: HashTable<u64>,
+    /// Each record's offset in `words`.
+    starts: Vec<u32>,
+    /// Keys: offsets in `words` (of the batch's words while pending).
+    table: ShardedTable,
 }
 
-/// Bytes of a hash-table slot per expected record, at the table's worst
-/// load (a power of two of buckets at 7/8 load: up to 16/7 slots of 8 bytes
-/// and a control byte each).
-const TABLE_BYTES_PER_RECORD: u64 = 21;
+/// Records of one interior level of one run, in the run's order: each
+/// record's header word, then its children's indices in the merged level
+/// below ([`MemoryMerge::nodes`]).
+#[derive(Debug, Default)]
+pub struct NodeBatch {
+    /// The records' words.
+    pub words: Vec<u32>,
+    /// Each record's offset in `words`.
+    pub starts: Vec<u32>,
+}
+
+impl NodeBatch {
+    /// Appends `other`'s records.
+    pub fn append(&mut self, other: &NodeBatch) {
+        let at = self.words.len() as u32;
+        self.words.extend_from_slice(&other.words);
+        self.starts.extend(other.starts.iter().map(|&s| s + at));
+    }
+}
+
+/// Bytes per expected record of the levels' words (beside their content).
+const START_BYTES_PER_RECORD: u64 = 4;
 
 impl MemoryMerge {
     /// A merge of depth-`depth` runs split at level `split` (1 ..= D − 2).
@@ -1781,7 +1805,7 @@ impl MemoryMerge {
             attributes,
             split,
             leaves: Vec::new(),
-            leaf_table: HashTable::new(),
+            leaf_table: ShardedTable::new(),
             nodes: (split..depth - 2).map(|_| NodeLevel::default()).collect(),
             roots: Vec::new(),
         })
@@ -1793,8 +1817,18 @@ impl MemoryMerge {
     pub fn estimate(levels: impl IntoIterator<Item = (u64, u64)>) -> u64 {
         levels
             .into_iter()
-            .map(|(records, words)| 4 * words + (4 + TABLE_BYTES_PER_RECORD) * records)
+            .map(|(records, words)| {
+                4 * words + (START_BYTES_PER_RECORD + crate::dedup::BYTES_PER_ENTRY) * records
+            })
             .sum()
+    }
+
+    /// An upper bound of the bytes a batch of `records` records with `words`
+    /// words of content takes while it is decoded and merged (its words and
+    /// offsets, twice while its decoded pieces are joined, each record's
+    /// offset in the run, and the tables' working arrays).
+    pub fn batch_estimate(records: u64, words: u64) -> u64 {
+        8 * words + (12 + crate::dedup::BATCH_BYTES_PER_RECORD) * records
     }
 
     /// Makes room for `records` more records of `level` with `words` words
@@ -1802,53 +1836,62 @@ impl MemoryMerge {
     /// that the tables do not grow (and briefly hold twice their size, and
     /// rehash) while the runs are given.
     pub fn reserve(&mut self, level: u8, records: u64, words: u64) {
-        let records = records as usize;
         if level == self.depth - 2 {
-            self.leaves.reserve(records);
-            self.leaf_table
-                .reserve(records, |&i| leaf_hash(self.leaves[i as usize]));
+            self.leaves.reserve(records as usize);
+            self.leaf_table.reserve(records, leaf_hash);
         } else if let Some(n) = level
             .checked_sub(self.split)
             .and_then(|i| self.nodes.get_mut(usize::from(i)))
         {
             n.words.reserve(words as usize);
+            n.starts.reserve(records as usize);
             let NodeLevel { words, table, .. } = n;
-            table.reserve(records, |&e| node_hash(words, e as u32));
+            table.reserve(records, |at| node_hash(words, at as u32));
         }
     }
 
-    /// The index of leaf mask `mask`: the next one when it is new.
-    #[inline]
-    pub fn leaf(&mut self, mask: u64) -> Result<u32, ConvertError> {
-        let leaves = &mut self.leaves;
-        let entry = self.leaf_table.entry(
-            leaf_hash(mask),
-            |&i| leaves[i as usize] == mask,
-            |&i| leaf_hash(leaves[i as usize]),
+    /// The indices of the leaf masks `masks`, in order: the next ones for
+    /// those not seen before.
+    pub fn leaves(&mut self, masks: &[u64]) -> Result<Vec<u32>, ConvertError> {
+        let hashes: Vec<u64> = masks.par_iter().map(|&m| leaf_hash(m)).collect();
+        let base = self.leaves.len() as u64;
+        let found = self.leaf_table.find_or_insert(
+            base,
+            &hashes,
+            |i| masks[i],
+            |i, _, key| key == masks[i],
+            leaf_hash,
         );
-        Ok(match entry {
-            hashbrown::hash_table::Entry::Occupied(e) => *e.get(),
-            hashbrown::hash_table::Entry::Vacant(e) => {
-                let i = u32::try_from(leaves.len())
+        let leaves = &mut self.leaves;
+        let mut ids = vec![0u32; masks.len()];
+        for i in 0..masks.len() {
+            let v = found[i];
+            ids[i] = if v < base {
+                v as u32
+            } else if (v - base) as usize == i {
+                let id = u32::try_from(leaves.len())
                     .ok()
-                    .filter(|&i| u64::from(i) < MAX_LEAF_COUNT)
+                    .filter(|&id| u64::from(id) < MAX_LEAF_COUNT)
                     .ok_or_else(|| {
                         build_error(BuildError::TooLarge {
                             what: format!("more than {MAX_LEAF_COUNT} leaves"),
                         })
                     })?;
-                leaves.push(mask);
-                e.insert(i);
-                i
-            }
-        })
+                leaves.push(masks[i]);
+                id
+            } else {
+                ids[(v - base) as usize]
+            };
+        }
+        self.leaf_table.settle(base, &ids, |_, mask| mask);
+        Ok(ids)
     }
 
-    /// The index of the record of interior `level` (`split .. D − 2`) with
-    /// header word `header` and children `children` (indices of the level
-    /// below): the next one when it is new.
-    #[inline]
-    pub fn node(&mut self, level: u8, header: u32, children: &[u32]) -> Result<u32, ConvertError> {
+    /// The indices of the records of `batch` of interior `level` (`split ..
+    /// D − 2`), in order: the next ones for those not seen before. Every
+    /// record's children must be indices of the level below, as many as its
+    /// header's child mask has bits.
+    pub fn nodes(&mut self, level: u8, batch: &NodeBatch) -> Result<Vec<u32>, ConvertError> {
         let leaf = self.depth - 2;
         let below = if level + 1 == leaf {
             self.leaves.len()
@@ -1856,49 +1899,93 @@ impl MemoryMerge {
             level
                 .checked_sub(self.split)
                 .and_then(|i| self.nodes.get(usize::from(i) + 1))
-                .map_or(0, |n| n.records as usize)
+                .map_or(0, |n| n.starts.len())
         };
-        let fits = (self.split..leaf).contains(&level)
-            && (header & 0xFF).count_ones() as usize == children.len()
-            && children.iter().all(|&c| (c as usize) < below);
-        if !fits {
+        let words_end = batch.words.len();
+        let misfit = (self.split..leaf).contains(&level).then(|| {
+            batch.starts.par_iter().enumerate().find_any(|&(i, &s)| {
+                let s = s as usize;
+                let end = batch.starts.get(i + 1).map_or(words_end, |&e| e as usize);
+                let fits = s < end
+                    && end <= words_end
+                    && (batch.words[s] & 0xFF).count_ones() as usize == end - s - 1
+                    && batch.words[s + 1..end]
+                        .iter()
+                        .all(|&c| (c as usize) < below);
+                !fits
+            })
+        });
+        let bad = match misfit {
+            None => Some(None),
+            Some(Some((i, _))) => Some(Some(i)),
+            Some(None) => None,
+        };
+        if let Some(i) = bad {
+            let record = i.map_or(String::new(), |i| {
+                let s = batch.starts[i] as usize;
+                let e = batch.starts.get(i + 1).map_or(words_end, |&e| e as usize);
+                format!(" {:?}", &batch.words[s..e.max(s).min(words_end)])
+            });
             return Err(ConvertError::Input(format!(
-                "a record of level {level} with header {header:#x} and children {children:?} does not fit levels {}..{leaf} ({below} records below)",
+                "a record{record} of level {level} does not fit levels {}..{leaf} ({below} records below)",
                 self.split
             )));
         }
         let n = &mut self.nodes[usize::from(level - self.split)];
-        let mut rec = [0u32; 9];
-        rec[0] = header;
-        rec[1..=children.len()].copy_from_slice(children);
-        let rec = &rec[..=children.len()];
         let NodeLevel {
             words,
-            records,
+            starts,
             table,
         } = n;
-        let entry = table.entry(
-            table_hash(hash_words(rec)),
-            |&e| node_content(words, e as u32) == rec,
-            |&e| node_hash(words, e as u32),
-        );
-        Ok(match entry {
-            hashbrown::hash_table::Entry::Occupied(e) => (*e.get() >> 32) as u32,
-            hashbrown::hash_table::Entry::Vacant(e) => {
-                let too_large = || {
-                    build_error(BuildError::TooLarge {
-                        what: format!("level {level} has more than 2^32 words of records"),
-                    })
-                };
-                let i = *records;
+        let hashes: Vec<u64> = batch
+            .starts
+            .par_iter()
+            .map(|&s| node_hash(&batch.words, s))
+            .collect();
+        let base = starts.len() as u64;
+        let found = {
+            let words = &*words;
+            table.find_or_insert(
+                base,
+                &hashes,
+                |i| u64::from(batch.starts[i]),
+                |i, value, key| {
+                    let record = node_content(&batch.words, batch.starts[i]);
+                    let held = if value < base {
+                        node_content(words, key as u32)
+                    } else {
+                        node_content(&batch.words, key as u32)
+                    };
+                    record == held
+                },
+                |at| node_hash(words, at as u32),
+            )
+        };
+        let too_large = || {
+            build_error(BuildError::TooLarge {
+                what: format!("level {level} has more than 2^32 words of records"),
+            })
+        };
+        let mut ids = vec![0u32; hashes.len()];
+        for i in 0..hashes.len() {
+            let v = found[i];
+            ids[i] = if v < base {
+                v as u32
+            } else if (v - base) as usize == i {
+                let id = u32::try_from(starts.len()).map_err(|_| too_large())?;
+                let record = node_content(&batch.words, batch.starts[i]);
                 let at = u32::try_from(words.len()).map_err(|_| too_large())?;
-                u32::try_from(words.len() + rec.len()).map_err(|_| too_large())?;
-                *records = i.checked_add(1).ok_or_else(too_large)?;
-                words.extend_from_slice(rec);
-                e.insert(u64::from(i) << 32 | u64::from(at));
-                i
-            }
-        })
+                u32::try_from(words.len() + record.len()).map_err(|_| too_large())?;
+                words.extend_from_slice(record);
+                starts.push(at);
+                id
+            } else {
+                ids[(v - base) as usize]
+            };
+        }
+        let starts = &*starts;
+        table.settle(base, &ids, |id, _| u64::from(starts[id as usize]));
+        Ok(ids)
     }
 
     /// Adds a root: the Morton code of its level-`split` cell (strictly
@@ -1906,7 +1993,7 @@ impl MemoryMerge {
     /// voxel count.
     pub fn push_root(&mut self, code: u64, index: u32, count: u64) -> Result<(), ConvertError> {
         let records = match self.nodes.first() {
-            Some(n) => n.records as usize,
+            Some(n) => n.starts.len(),
             None => self.leaves.len(),
         };
         if self.roots.last().is_some_and(|r| r.0 >= code) || index as usize >= records {
@@ -1950,10 +2037,12 @@ impl MemoryMerge {
             let level = split + i as u8;
             let NodeLevel {
                 words,
-                records,
+                starts,
                 table,
             } = n;
             drop(table);
+            let records = starts.len();
+            drop(starts);
             let width = layout::minimal_pointer_width(below_units).ok_or_else(|| {
                 build_error(BuildError::TooLarge {
                     what: format!(
@@ -1964,7 +2053,7 @@ impl MemoryMerge {
             })?;
             // Each record's offset in units (words): its start, once the
             // sizes of the records before it at this width are known.
-            let mut units = vec![0u32; records as usize];
+            let mut units = vec![0u32; records];
             let mut at = 0u64;
             let mut w = 0usize;
             for u in &mut units {

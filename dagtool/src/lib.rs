@@ -13,11 +13,14 @@
 //! - [`voxlist`]: the text and binary voxel list formats;
 //! - [`convert`]: the `convert` command (pipeline + builder + atomic output);
 //! - [`external`]: the out-of-core DAG build (runs spilled to unnamed
-//!   temporary files, merged level by level within a memory budget);
+//!   temporary files, merged level by level within a memory budget), and the
+//!   in-memory merge of runs;
+//! - [`dedup`]: the in-memory merge's hash-sharded tables, looked up on every
+//!   core with first-seen indices;
 //! - [`region`]: region builds: a cell of the root cube and the part file
 //!   that holds one (its placement section);
-//! - [`merge`]: the `merge` command (parts joined by the out-of-core level
-//!   merge into the file of one whole conversion);
+//! - [`merge`]: the `merge` command (parts joined by the in-memory or the
+//!   out-of-core level merge into the file of one whole conversion);
 //! - [`output`]: atomic file output;
 //! - [`demo`]: the whole pipeline on a built-in scene;
 //! - [`cmd`]: `validate`, `info`, `dump`, `pack`, `unpack`;
@@ -29,6 +32,7 @@
 pub mod cloud;
 pub mod cmd;
 pub mod convert;
+pub mod dedup;
 pub mod demo;
 pub mod error;
 pub mod external;

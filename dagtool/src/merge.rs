@@ -10,7 +10,8 @@
 //! complete subtrees, its records in first-seen order, which is what a
 //! spilled run of one conversion holds. When the parts' records fit the
 //! memory limit they are deduplicated in one hash table per level, part
-//! after part ([`crate::external::MemoryMerge`]); otherwise by the
+//! after part, each part's level looked up on every core in tables sharded
+//! by hash ([`crate::external::MemoryMerge`]); otherwise by the
 //! out-of-core level merge ([`crate::external::RunMerge`]), which works
 //! within any budget through temporary files. Both deduplicate exactly and
 //! give the same bytes, and the result does not depend on how the parts were
@@ -32,7 +33,9 @@ use dagfmt::validate::{ValidateOptions, validate_with};
 use dagfmt::{AnyDag, Dag, FormatError};
 
 use crate::error::ConvertError;
-use crate::external::{ColourSink, MIN_MERGE_BUDGET, MemoryMerge, RunMerge, Scratch};
+use rayon::prelude::*;
+
+use crate::external::{ColourSink, MIN_MERGE_BUDGET, MemoryMerge, NodeBatch, RunMerge, Scratch};
 use crate::output::check_output;
 use crate::region::{ColourMode, Placement, Region, check_part, rules};
 use crate::sysinfo::{current_rss, total_memory};
@@ -100,6 +103,11 @@ pub struct MergeSummary {
     pub in_memory: bool,
     /// Seconds spent validating the parts.
     pub validate_seconds: f64,
+    /// Seconds spent reading the parts into the merge and merging their
+    /// levels (after validating).
+    pub merge_seconds: f64,
+    /// Seconds spent writing the output (encoding it, in 2.0).
+    pub write_seconds: f64,
     /// Total seconds.
     pub total_seconds: f64,
 }
@@ -112,7 +120,7 @@ impl MergeSummary {
              voxels:   {}\n\
              nodes:    {:?} per level\n\
              output:   {} ({} bytes, {}, format {}.0)\n\
-             time:     {:.2} s ({:.2} s validating {} bytes of parts; {}, {} temporary bytes, up to {} buckets per level)\n",
+             time:     {:.2} s ({:.2} s validating {} bytes of parts, {:.2} s merging, {:.2} s writing; {}, {} temporary bytes, up to {} buckets per level)\n",
             self.parts,
             if self.parts == 1 { "" } else { "s" },
             self.region_level,
@@ -133,6 +141,8 @@ impl MergeSummary {
             self.total_seconds,
             self.validate_seconds,
             self.input_bytes,
+            self.merge_seconds,
+            self.write_seconds,
             if self.in_memory {
                 "in memory"
             } else {
@@ -412,11 +422,19 @@ pub fn merge(
     let split = level.max(1);
     let colour_cap = (limit / 16).clamp(1 << 20, 256 << 20);
     // In memory when the parts' records, before deduplication, fit what is
-    // left of the limit (beside the colours, and the largest part's maps
-    // from its pointers to the merged records).
+    // left of the limit (beside the colours, the largest part's maps from its
+    // pointers to the merged records, and its largest level decoded as a
+    // batch).
     let lower = usize::from(split)..usize::from(depth) - 1;
+    let largest_batch = opened
+        .iter()
+        .flat_map(|p| p.levels.get(lower.clone()).unwrap_or(&[]))
+        .map(|&(records, words)| MemoryMerge::batch_estimate(records, words))
+        .max()
+        .unwrap_or(0);
     let needed = MemoryMerge::estimate(lower.clone().map(|l| level_totals(&opened, l)))
-        + opened.iter().map(|p| p.bytes).max().unwrap_or(0);
+        + opened.iter().map(|p| p.bytes).max().unwrap_or(0)
+        + largest_batch;
     let available =
         limit.saturating_sub(current_rss().unwrap_or(0) + colour_cap + (limit / 16).max(24 << 20));
     let in_memory = opts.buckets.is_none() && needed <= available;
@@ -470,6 +488,7 @@ pub fn merge(
         Levels::Runs(runs) => runs.finish(budget, &|_| {})?,
         Levels::Memory(m) => m.finish()?,
     };
+    let merge_seconds = start.elapsed().as_secs_f64() - validate_seconds;
     let file_header = FileHeader {
         depth,
         attributes: header.attribute_kind,
@@ -515,6 +534,8 @@ pub fn merge(
         temp_bytes: scratch.bytes_written(),
         in_memory,
         validate_seconds,
+        merge_seconds,
+        write_seconds: start.elapsed().as_secs_f64() - validate_seconds - merge_seconds,
         total_seconds: start.elapsed().as_secs_f64(),
     })
 }
@@ -639,9 +660,11 @@ fn add_run(dag: &Dag<'_>, split: u8, runs: &mut RunMerge) -> Result<(), RunError
 }
 
 /// Gives the part's levels `split ..= D − 2` and its level-`split` subtrees
-/// to the in-memory merge, bottom-up: each record's children become the
-/// merged indices of the records they point to, through a map from the
-/// part's pointers (word offsets, or leaf indices) to those indices.
+/// to the in-memory merge, bottom-up, a level at a time: each record's
+/// children become the merged indices of the records they point to, through
+/// a map from the part's pointers (word offsets, or leaf indices) to those
+/// indices. The records are decoded on every core, and each level is
+/// deduplicated on every core ([`MemoryMerge::nodes`]).
 fn add_part(dag: &Dag<'_>, split: u8, merge: &mut MemoryMerge) -> Result<(), RunError> {
     if dag.is_empty() {
         return Ok(());
@@ -653,29 +676,64 @@ fn add_part(dag: &Dag<'_>, split: u8, merge: &mut MemoryMerge) -> Result<(), Run
             "a pointer ({pointer}) does not start a record"
         )))
     };
+    let masks: Vec<u64> = (0..levels[usize::from(leaf)].node_count as u32)
+        .into_par_iter()
+        .map(|i| dag.leaf(i).map(|l| l.0))
+        .collect::<Result<_, _>>()?;
     // `below[pointer]`: the merged index of the record at `pointer` of the
     // level below (u32::MAX: no record starts there).
-    let mut below: Vec<u32> = (0..levels[usize::from(leaf)].node_count)
-        .map(|i| merge.leaf(dag.leaf(i as u32)?.0).map_err(RunError::from))
-        .collect::<Result<_, _>>()?;
-    let mut children = [0u32; 8];
+    let mut below: Vec<u32> = merge.leaves(&masks)?;
+    drop(masks);
+    /// Records decoded per task.
+    const CHUNK: usize = 1 << 14;
     for level in (split..leaf).rev() {
         let section = &levels[usize::from(level)];
-        let mut map = vec![u32::MAX; section.units() as usize];
+        // Where each record starts (the records are of different sizes, so
+        // this one pass is serial: it reads the headers only).
+        let mut offsets = Vec::with_capacity(section.node_count as usize);
         let mut word = 0u32;
         for _ in 0..section.node_count {
-            let node = dag.node(level, word)?;
-            let count = node.child_count() as usize;
-            for (rank, c) in children[..count].iter_mut().enumerate() {
-                let p = node.pointer_at(rank as u32);
-                *c = below
-                    .get(p as usize)
-                    .copied()
-                    .filter(|&i| i != u32::MAX)
-                    .ok_or_else(|| not_a_record(p))?;
-            }
-            map[word as usize] = merge.node(level, node.header, &children[..count])?;
-            word += (node.record_size() / 4) as u32;
+            offsets.push(word);
+            word += (dag.node(level, word)?.record_size() / 4) as u32;
+        }
+        let chunks = offsets
+            .par_chunks(CHUNK)
+            .map(|chunk| -> Result<NodeBatch, RunError> {
+                let mut batch = NodeBatch {
+                    words: Vec::with_capacity(chunk.len() * 5),
+                    starts: Vec::with_capacity(chunk.len()),
+                };
+                for &word in chunk {
+                    let node = dag.node(level, word)?;
+                    batch.starts.push(batch.words.len() as u32);
+                    batch.words.push(node.header);
+                    for rank in 0..node.child_count() {
+                        let p = node.pointer_at(rank);
+                        batch.words.push(
+                            below
+                                .get(p as usize)
+                                .copied()
+                                .filter(|&i| i != u32::MAX)
+                                .ok_or_else(|| not_a_record(p))?,
+                        );
+                    }
+                }
+                Ok(batch)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut batch = NodeBatch {
+            words: Vec::with_capacity(chunks.iter().map(|c| c.words.len()).sum()),
+            starts: Vec::with_capacity(offsets.len()),
+        };
+        for c in &chunks {
+            batch.append(c);
+        }
+        drop(chunks);
+        let ids = merge.nodes(level, &batch)?;
+        drop(batch);
+        let mut map = vec![u32::MAX; section.units() as usize];
+        for (&word, id) in offsets.iter().zip(ids) {
+            map[word as usize] = id;
         }
         below = map;
     }

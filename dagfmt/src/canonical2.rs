@@ -4,13 +4,18 @@
 //! The check runs only on a file whose steps 1 – 3 found nothing, so every
 //! record decodes and every reference names an item of the level below.
 //!
+//! Records are read from the walk's flat arrays ([`Flat`]), not decoded
+//! again.
+//!
 //! 1. **Bottom-up**, per level: each item's key (§23.6) from its record and
 //!    the ranks, symmetry groups and reflections to the canonical member of
 //!    its children, computed in parallel; the level's intrinsic ranks by a
-//!    parallel sort of the keys (equal keys: one class). Per item this keeps
-//!    its class's rank, the least reflection turning it into its class's
-//!    canonical member and its class's symmetry group (a bit set of the
-//!    reflections that fix it): 6 bytes an item.
+//!    parallel sort of the keys (equal keys: one class), packed two slots to
+//!    a word where the ranks allow. Per item this keeps its class's rank,
+//!    the least reflection turning it into its class's canonical member,
+//!    its class's symmetry group (a bit set of the reflections that fix it)
+//!    and whether its shared references carry least reflections: 8 bytes
+//!    an item.
 //! 2. **Top-down**, per level: what the canonical encoding stores there, as
 //!    (class, stored reflection) in stored order (§23.7), from the reference
 //!    counts of the classes of the level above (each class counted once, in
@@ -34,13 +39,14 @@
 //! check this against that rebuild).
 
 use crate::symmetry::{NodeKey, reflect_leaf};
-use crate::v2::{self, Child, LevelView, norm, reflect_key};
+use crate::v2::{self, LevelView, norm, reflect_key};
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::SectionEntry;
 use crate::validate::{Findings, Stop};
-use crate::validate2::StartIndex;
+use crate::validate2::{Flat, NO_ITEM, SHARED};
 
 /// A child of a record as an item of the level below.
 #[derive(Clone, Copy)]
@@ -55,13 +61,12 @@ struct ChildItem {
 
 type Children = [Option<ChildItem>; 8];
 
-/// One level of the file as the check reads it.
+/// One level of the file as the check reads it: the walk's decoding.
 struct FileLevel<'a> {
     view: &'a LevelView<'a>,
-    /// Record offsets in the level (interior); empty for the leaf level.
-    starts: &'a [u64],
-    /// `starts` indexed by offset.
-    index: StartIndex,
+    /// The records as the walk decoded them (interior), and the times each
+    /// item is named.
+    flat: &'a Flat,
     /// Items in the level.
     len: usize,
 }
@@ -72,7 +77,7 @@ impl FileLevel<'_> {
         if self.view.is_leaf {
             i as u64 * 8
         } else {
-            self.starts[i]
+            self.flat.starts[i]
         }
     }
 
@@ -82,47 +87,28 @@ impl FileLevel<'_> {
         u64::from_le_bytes(b.try_into().expect("8 bytes"))
     }
 
-    /// The item index that `target` names in this level.
-    fn item_of(&self, target: u64) -> Option<u32> {
-        let i = if self.view.is_leaf {
-            usize::try_from(target).ok().filter(|&i| i < self.len)?
-        } else {
-            self.index.item(target)?
-        };
-        u32::try_from(i).ok()
-    }
-
-    /// Record `i`'s header and its children as items of `below`.
-    fn record(&self, i: usize, below: &FileLevel<'_>) -> Option<(u32, Children)> {
-        let node = v2::decode_node(self.view.bytes, self.starts[i], self.view.widths).ok()?;
+    /// Record `i`'s header and its children as items of the level below
+    /// (`None` when a reference names no item; steps 1 – 3 rule it out).
+    fn record(&self, i: usize) -> Option<(u32, Children)> {
+        let header = *self.flat.headers.get(i)?;
+        let from = usize::try_from(*self.flat.first.get(i)?).ok()?;
+        let to = usize::try_from(*self.flat.first.get(i + 1)?).ok()?;
+        let kids = self.flat.kids.get(from..to)?;
+        let bits = self.flat.kid_bits.get(from..to)?;
         let mut out = [None; 8];
-        let mut base_item = None;
-        for (slot, child) in node.children.iter().enumerate() {
-            out[slot] = match *child {
-                None => None,
-                Some(Child::Shared { target, reflection }) => Some(ChildItem {
-                    item: below.item_of(target)?,
-                    reflection,
-                    shared: true,
-                }),
-                Some(Child::Sequential { base, index }) => {
-                    let first = match base_item {
-                        Some(b) => b,
-                        None => *base_item.insert(below.item_of(base)?),
-                    };
-                    let item = first.checked_add(index)?;
-                    if item as usize >= below.len {
-                        return None;
-                    }
-                    Some(ChildItem {
-                        item,
-                        reflection: 0,
-                        shared: false,
-                    })
-                }
-            };
+        let mut mask = header & 0xff;
+        for (&item, &b) in kids.iter().zip(bits) {
+            if mask == 0 || item == NO_ITEM {
+                return None;
+            }
+            out[mask.trailing_zeros() as usize] = Some(ChildItem {
+                item,
+                reflection: b & 7,
+                shared: b & SHARED != 0,
+            });
+            mask &= mask - 1;
         }
-        Some((node.header, out))
+        (mask == 0).then_some((header, out))
     }
 }
 
@@ -138,6 +124,11 @@ struct ItemInfo {
     /// Its class's symmetry group, bit s set when reflection s maps the
     /// class onto itself.
     group: u8,
+    /// Whether each of its shared references carries the least reflection
+    /// of its coset (true for a leaf): found while its key is built, which
+    /// reads the same children, so that the comparison with the canonical
+    /// level needs no second pass over the references.
+    least_references: bool,
 }
 
 /// What the bottom-up pass knows of a level's items and classes.
@@ -168,16 +159,6 @@ impl Ranked {
             group,
             first,
         }
-    }
-
-    /// The slot value of §23.6 for a child stored as item `c` and named
-    /// with reflection `r`: `1 + 8·rank + t`, t the least reflection turning
-    /// the class's canonical member into the child.
-    #[inline]
-    fn slot(&self, c: ChildItem) -> u64 {
-        let info = self.items[c.item as usize];
-        let t = norm(info.to_canonical ^ c.reflection, info.group);
-        1 + (u64::from(info.rank) << 3) + u64::from(t)
     }
 }
 
@@ -213,77 +194,110 @@ fn rank_leaves(level: &FileLevel<'_>) -> Ranked {
             rank: 0,
             to_canonical: p.1,
             group: p.2,
+            least_references: true,
         })
         .collect();
     Ranked::from_sorted(&sorted, items)
 }
 
 /// The key of record `i` as stored (reflection 0): its slots in terms of
-/// its children's classes, and its attribute.
-fn stored_key(header: u32, children: &Children, below: &Ranked) -> NodeKey {
+/// its children's classes, and its attribute; and whether each of its
+/// shared references carries the least reflection of its coset.
+fn stored_key(header: u32, children: &Children, below: &Ranked) -> (NodeKey, bool) {
     let mut key = NodeKey {
         slots: [0; 8],
         attribute: header >> 8,
     };
+    let mut least = true;
     for (p, c) in children.iter().enumerate() {
         if let Some(c) = c {
-            key.slots[p] = below.slot(*c);
+            let info = below.items[c.item as usize];
+            let t = norm(info.to_canonical ^ c.reflection, info.group);
+            key.slots[p] = 1 + (u64::from(info.rank) << 3) + u64::from(t);
+            least &= !c.shared || norm(c.reflection, info.group) == c.reflection;
         }
     }
-    key
+    (key, least)
 }
 
 /// Ranks interior level `l` (the root, l = 0, is its own canonical member:
 /// §23.6). `None` when a record does not decode (steps 1 – 3 rule it out).
-fn rank_nodes(
-    level: &FileLevel<'_>,
-    below: &FileLevel<'_>,
-    below_ranked: &Ranked,
-    is_root: bool,
+fn rank_nodes(level: &FileLevel<'_>, below_ranked: &Ranked, is_root: bool) -> Option<Ranked> {
+    let key_of = |i: usize| -> Option<(NodeKey, ItemInfo)> {
+        let (header, children) = level.record(i)?;
+        let (key, least_references) = stored_key(header, &children, below_ranked);
+        let (key, to_canonical, group) = if is_root {
+            (key, 0, 1)
+        } else {
+            v2::least_reflected_key(&key, &below_ranked.group)
+        };
+        Some((
+            key,
+            ItemInfo {
+                rank: 0,
+                to_canonical,
+                group,
+                least_references,
+            },
+        ))
+    };
+    // A slot value is below 8 × (classes below) + 1: with fewer than 2^29
+    // classes below, two slots fit a 64-bit word, and the sort moves and
+    // compares 40 bytes an item instead of 80.
+    if below_ranked.first.len() < 1 << 29 {
+        rank_keys(level.len, key_of, packed_key)
+    } else {
+        rank_keys(level.len, key_of, |k| *k)
+    }
+}
+
+/// A key's slots two to a word (slot 2w in the high half of word w) and
+/// its attribute: the same order as [`NodeKey`]'s when every slot value is
+/// below 2^32.
+fn packed_key(key: &NodeKey) -> ([u64; 4], u32) {
+    let mut words = [0u64; 4];
+    for (w, pair) in words.iter_mut().zip(key.slots.chunks_exact(2)) {
+        *w = pair[0] << 32 | pair[1];
+    }
+    (words, key.attribute)
+}
+
+/// Ranks items `0..n` by the keys `key_of` gives them, compared in the form
+/// `pack` gives (which keeps their order).
+fn rank_keys<K: Ord + Send>(
+    n: usize,
+    key_of: impl Fn(usize) -> Option<(NodeKey, ItemInfo)> + Sync,
+    pack: impl Fn(&NodeKey) -> K + Sync,
 ) -> Option<Ranked> {
-    let keyed: Vec<(NodeKey, u8, u8)> = (0..level.len)
+    let keyed: Vec<((K, u32), ItemInfo)> = (0..n)
         .into_par_iter()
         .map(|i| {
-            let (header, children) = level.record(i, below)?;
-            let key = stored_key(header, &children, below_ranked);
-            Some(if is_root {
-                (key, 0, 1)
-            } else {
-                v2::least_reflected_key(&key, &below_ranked.group)
-            })
+            let (key, info) = key_of(i)?;
+            Some(((pack(&key), i as u32), info))
         })
         .collect::<Option<_>>()?;
-    let items = keyed
-        .iter()
-        .map(|k| ItemInfo {
-            rank: 0,
-            to_canonical: k.1,
-            group: k.2,
-        })
-        .collect();
-    let mut sorted: Vec<(NodeKey, u32)> = keyed
-        .into_par_iter()
-        .enumerate()
-        .map(|(i, k)| (k.0, i as u32))
-        .collect();
+    let (mut sorted, items): (Vec<(K, u32)>, Vec<ItemInfo>) = keyed.into_par_iter().unzip();
     sorted.par_sort_unstable();
     Some(Ranked::from_sorted(&sorted, items))
 }
 
-/// The canonical member's key of class `rank` of interior level `l`.
+/// The key of class `rank` of interior level `l` as the canonical encoding
+/// stores it: its canonical member reflected by `stored`. (Reflecting by
+/// a and then by b is reflecting by a ^ b: a reference's reflection is
+/// normalised in a group, so normalising twice is normalising once.)
 fn class_key(
     level: &FileLevel<'_>,
     ranked: &Ranked,
     rank: u32,
-    below: &FileLevel<'_>,
+    stored: u8,
     below_ranked: &Ranked,
 ) -> Option<NodeKey> {
     let item = ranked.first[rank as usize];
-    let (header, children) = level.record(item as usize, below)?;
-    let key = stored_key(header, &children, below_ranked);
+    let (header, children) = level.record(item as usize)?;
+    let (key, _) = stored_key(header, &children, below_ranked);
     Some(reflect_key(
         &key,
-        ranked.items[item as usize].to_canonical,
+        ranked.items[item as usize].to_canonical ^ stored,
         &below_ranked.group,
     ))
 }
@@ -308,22 +322,34 @@ fn compare(
     level: &FileLevel<'_>,
     ranked: &Ranked,
     canonical: &[(u32, u8)],
-    below: Option<(&FileLevel<'_>, &Ranked, &[u32])>,
+    below: Option<(&Ranked, &[u32])>,
 ) -> Option<Difference> {
-    // Whether item i's references carry least reflections, and (`counts`)
+    // Where no level of the two holds two items of one class, each item
+    // below is named as its class is counted, and the walk found every
+    // item named by one sequential run or by shared references, two or
+    // more (E078): the naming then agrees with the counts.
+    let naming_follows = below.is_none_or(|(below_ranked, _)| {
+        ranked.group.len() == ranked.items.len()
+            && below_ranked.group.len() == below_ranked.items.len()
+    });
+    // Whether item i's references carry least reflections, and (`check_naming`)
     // whether it names each child as the canonical counts say.
     let references_ok = |i: usize, check_naming: bool| -> bool {
-        let Some((below, below_ranked, counts)) = below else {
+        let Some((below_ranked, counts)) = below else {
             return true;
         };
-        let Some((_, children)) = level.record(i, below) else {
+        if !ranked.items[i].least_references {
+            return false;
+        }
+        if !check_naming || naming_follows {
+            return true;
+        }
+        let Some((_, children)) = level.record(i) else {
             return false;
         };
         children.iter().flatten().all(|c| {
             let info = below_ranked.items[c.item as usize];
-            let least = !c.shared || norm(c.reflection, info.group) == c.reflection;
-            let named = !check_naming || c.shared == (counts[info.rank as usize] > 1);
-            least && named
+            c.shared == (counts[info.rank as usize] > 1)
         })
     };
     let same = |i: usize| -> bool {
@@ -366,19 +392,44 @@ fn compare(
 
 /// The canonical reference counts of the classes of level `l + 1`: each
 /// class of level `l` counted once, every reference of it.
+///
+/// Read in item order, without a random access per reference where that
+/// can be avoided: when every item of level `l` is the only one of its
+/// class (a canonical level), the counts are the times the walk found each
+/// item of level `l + 1` named, summed per class; otherwise the items of
+/// level `l + 1` are counted from the classes' first items, in one
+/// sequential pass, and then summed per class.
 fn reference_counts(
     level: &FileLevel<'_>,
     ranked: &Ranked,
     below: &FileLevel<'_>,
     below_ranked: &Ranked,
 ) -> Option<Vec<u32>> {
-    let mut counts = vec![0u32; below_ranked.first.len()];
-    for &item in &ranked.first {
-        let (_, children) = level.record(item as usize, below)?;
-        for c in children.iter().flatten() {
-            let r = below_ranked.items[c.item as usize].rank as usize;
-            counts[r] = counts[r].saturating_add(1);
+    let per_item: Cow<'_, [u32]> = if ranked.first.len() == level.len {
+        if below.flat.named.len() != below.len {
+            return None;
         }
+        Cow::Borrowed(&below.flat.named)
+    } else {
+        let mut is_first = vec![false; level.len];
+        for &item in &ranked.first {
+            is_first[item as usize] = true;
+        }
+        let mut per_item = vec![0u32; below.len];
+        for (i, _) in is_first.iter().enumerate().filter(|(_, f)| **f) {
+            let from = usize::try_from(level.flat.first[i]).ok()?;
+            let to = usize::try_from(level.flat.first[i + 1]).ok()?;
+            for &c in &level.flat.kids[from..to] {
+                let n = per_item.get_mut(c as usize)?;
+                *n = n.saturating_add(1);
+            }
+        }
+        Cow::Owned(per_item)
+    };
+    let mut counts = vec![0u32; below_ranked.first.len()];
+    for (info, &n) in below_ranked.items.iter().zip(per_item.iter()) {
+        let r = info.rank as usize;
+        counts[r] = counts[r].saturating_add(n);
     }
     Some(counts)
 }
@@ -388,7 +439,6 @@ fn next_canonical(
     level: &FileLevel<'_>,
     ranked: &Ranked,
     canonical: &[(u32, u8)],
-    below: &FileLevel<'_>,
     below_ranked: &Ranked,
     counts: &[u32],
 ) -> Option<Vec<(u32, u8)>> {
@@ -401,46 +451,52 @@ fn next_canonical(
             .cmp(&counts[a.0 as usize])
             .then(a.0.cmp(&b.0))
     });
-    for &(rank, stored) in canonical {
-        let key = class_key(level, ranked, rank, below, below_ranked)?;
-        let key = reflect_key(&key, stored, &below_ranked.group);
-        for &s in &key.slots {
-            if s != 0 {
-                let child = ((s - 1) >> 3) as u32;
-                if counts[child as usize] == 1 {
-                    next.push((child, ((s - 1) & 7) as u8));
+    // The sequential children, in the order of their parents: chunks of
+    // the parents on rayon's threads, concatenated in order.
+    let sequential: Vec<Vec<(u32, u8)>> = canonical
+        .par_chunks(1 << 14)
+        .map(|parents| {
+            let mut out = Vec::new();
+            for &(rank, stored) in parents {
+                let key = class_key(level, ranked, rank, stored, below_ranked)?;
+                for &s in &key.slots {
+                    if s != 0 {
+                        let child = ((s - 1) >> 3) as u32;
+                        if counts[child as usize] == 1 {
+                            out.push((child, ((s - 1) & 7) as u8));
+                        }
+                    }
                 }
             }
-        }
+            Some(out)
+        })
+        .collect::<Option<_>>()?;
+    next.reserve(sequential.iter().map(Vec::len).sum());
+    for part in sequential {
+        next.extend(part);
     }
     Some(next)
 }
 
 /// Step 4 of §23.10 on a file whose steps 1 – 3 found nothing: reports at
-/// most one of E075 – E077. `starts[l]`: the record offsets of node level
-/// `l`, as the walk found them.
+/// most one of E075 – E077. `flats[l]`: level `l` as the walk decoded it.
 pub(crate) fn check(
     f: &mut Findings,
     entries: &[&SectionEntry],
     views: &[LevelView<'_>],
-    starts: &[Vec<u64>],
+    flats: &[Flat],
 ) -> Result<(), Stop> {
     let leaf_level = views.len() - 1;
     let levels: Vec<FileLevel<'_>> = views
         .iter()
-        .enumerate()
-        .map(|(l, view)| FileLevel {
+        .zip(flats)
+        .map(|(view, flat)| FileLevel {
             view,
-            starts: if view.is_leaf { &[] } else { &starts[l] },
-            index: if view.is_leaf {
-                StartIndex::default()
-            } else {
-                StartIndex::new(&starts[l], view.bytes.len() as u64)
-            },
+            flat,
             len: if view.is_leaf {
                 view.bytes.len() / 8
             } else {
-                starts[l].len()
+                flat.starts.len()
             },
         })
         .collect();
@@ -453,7 +509,7 @@ pub(crate) fn check(
     ranked[leaf_level] = Some(rank_leaves(&levels[leaf_level]));
     for l in (0..leaf_level).rev() {
         let below = ranked[l + 1].as_ref().expect("ranked");
-        let Some(r) = rank_nodes(&levels[l], &levels[l + 1], below, l == 0) else {
+        let Some(r) = rank_nodes(&levels[l], below, l == 0) else {
             return Ok(());
         };
         ranked[l] = Some(r);
@@ -477,18 +533,12 @@ pub(crate) fn check(
             level,
             &ranked[l],
             &canonical,
-            Some((below, &ranked[l + 1], &counts)),
+            Some((&ranked[l + 1], &counts)),
         ) {
             deepest = Some((l, d));
         }
-        let Some(next) = next_canonical(
-            level,
-            &ranked[l],
-            &canonical,
-            below,
-            &ranked[l + 1],
-            &counts,
-        ) else {
+        let Some(next) = next_canonical(level, &ranked[l], &canonical, &ranked[l + 1], &counts)
+        else {
             return Ok(());
         };
         canonical = next;

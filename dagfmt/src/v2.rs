@@ -346,6 +346,38 @@ pub fn record_references(
     offset: u64,
     widths: [u8; 3],
 ) -> Result<(Vec<(u8, u64)>, u64), FormatError> {
+    let (_, refs) = decode_node_references(level, offset, widths)?;
+    Ok((refs.as_slice().to_vec(), refs.bits))
+}
+
+/// A record's references as stored, without an allocation: what
+/// [`record_references`] returns.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct References {
+    /// Per reference (at most 8 shared ones and a base): code and value;
+    /// the first `count` entries are used.
+    refs: [(u8, u64); 9],
+    /// The references in `refs`.
+    count: u8,
+    /// B: the bits of the record's stream (codes and references).
+    pub bits: u64,
+}
+
+impl References {
+    /// Code (1 ..= 3) and value of each reference, in stored order.
+    pub fn as_slice(&self) -> &[(u8, u64)] {
+        &self.refs[..usize::from(self.count)]
+    }
+}
+
+/// [`decode_node`] and [`record_references`] of one record with one
+/// decoding of its header and codes: for the validator's walk, which needs
+/// both of every record.
+pub fn decode_node_references(
+    level: &[u8],
+    offset: u64,
+    widths: [u8; 3],
+) -> Result<(Node2, References), FormatError> {
     let node = decode_node(level, offset, widths)?;
     // decode_node checked that the whole record lies inside `level`.
     let stream = &level[offset as usize + 4..offset as usize + node.size as usize];
@@ -356,7 +388,7 @@ pub fn record_references(
         .flatten()
         .any(|c| matches!(c, Child::Sequential { .. }));
     let m = k + u64::from(has_base);
-    let mut refs = Vec::with_capacity(m as usize);
+    let mut refs = References::default();
     let mut bit = 2 * m;
     for i in 0..m {
         let code = bits_at(stream, 2 * i, 2).ok_or_else(|| truncated(offset))? as u8;
@@ -364,10 +396,12 @@ pub fn record_references(
             let w = u32::from(widths[usize::from(code) - 1]);
             let v = bits_at(stream, bit, w).ok_or_else(|| truncated(offset))?;
             bit += u64::from(w);
-            refs.push((code, v));
+            refs.refs[usize::from(refs.count)] = (code, v);
+            refs.count += 1;
         }
     }
-    Ok((refs, bit))
+    refs.bits = bit;
+    Ok((node, refs))
 }
 
 /// The address of a child found by [`decode_node`] in a child level whose

@@ -435,9 +435,19 @@ pub fn encode_levels(
             .map(|i| (i, 0))
             .collect();
         next.par_sort_unstable_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
+        // A ranked key's references are normalised already (merge_level
+        // builds them so), so the identity leaves it as it is: shared nodes,
+        // and most sequential ones, are stored without a reflection.
         let as_stored: Vec<NodeKey> = stored
             .par_iter()
-            .map(|&(rank, applied)| reflect_key(&keys[rank as usize], applied, &child_stabs))
+            .map(|&(rank, applied)| {
+                let key = &keys[rank as usize];
+                if applied == 0 {
+                    *key
+                } else {
+                    reflect_key(key, applied, &child_stabs)
+                }
+            })
             .collect();
         drop(keys);
         drop(child_stabs);
@@ -480,19 +490,21 @@ pub fn encode_levels(
     let mut summaries: Vec<Option<LevelSummary>> = vec![None; leaf_level + 1];
     let stored_leaves = store.take(kept_stored[leaf_level].take().expect("ordered"))?;
     // A root that is a leaf (depth 2) has no level above to count it.
-    let mut c = match kept_counts[leaf_level].take() {
+    let c = match kept_counts[leaf_level].take() {
         Some(t) => store.take(t)?,
         None => vec![1],
     };
     let leaves = store.take(leaves)?;
-    // Address of each shared child by rank; of each child by position
-    // (`None`: the position itself, in the leaf level).
-    let mut addr_of_rank = vec![0u64; leaf_classes];
+    // Address of each shared child by rank (`SEQUENTIAL` for a child
+    // referenced once); of each child by position (`None`: the position
+    // itself, in the leaf level).
+    let mut addr_of_rank = vec![SEQUENTIAL; leaf_classes];
     for (pos, &(rank, _)) in stored_leaves.iter().enumerate() {
         if c[rank as usize] > 1 {
             addr_of_rank[rank as usize] = pos as u64;
         }
     }
+    drop(c);
     let leaf_bytes: Vec<u8> = stored_leaves
         .par_chunks(LAYOUT_CHUNK)
         .flat_map_iter(|chunk| {
@@ -521,7 +533,6 @@ pub fn encode_levels(
             None => vec![1],
         };
         let layout = LevelLayout {
-            counts: &c,
             addr_of_rank: &addr_of_rank,
             addr_of_pos: addr_of_pos.as_deref(),
         };
@@ -578,7 +589,7 @@ pub fn encode_levels(
             next_addr_of_pos.extend(offsets.iter().map(|o| base + o));
             level_bytes.extend_from_slice(&piece);
         }
-        let mut next_addr_of_rank = vec![0u64; class_counts[level]];
+        let mut next_addr_of_rank = vec![SEQUENTIAL; class_counts[level]];
         for (&(rank, _), &offset) in stored_here.iter().zip(&next_addr_of_pos) {
             if level == 0 || counts_here[rank as usize] > 1 {
                 next_addr_of_rank[rank as usize] = offset;
@@ -594,7 +605,6 @@ pub fn encode_levels(
         bytes[level] = Some(store.keep(level_bytes)?);
         addr_of_pos = Some(next_addr_of_pos);
         addr_of_rank = next_addr_of_rank;
-        c = counts_here;
     }
     Ok(EncodedLevels {
         depth,
@@ -612,11 +622,15 @@ fn bits_of(v: u64) -> u32 {
     (64 - v.leading_zeros()).max(1)
 }
 
+/// The address of a class below in [`LevelLayout::addr_of_rank`] that is
+/// referenced once: a sequential child, which has no reference of its own.
+const SEQUENTIAL: u64 = u64::MAX;
+
 /// What the layout of a level reads of the level below.
 struct LevelLayout<'a> {
-    /// Reference counts of the classes below, by rank.
-    counts: &'a [u32],
-    /// Address of each shared class below, by rank.
+    /// Address of each shared class below, by rank; [`SEQUENTIAL`] for a
+    /// class referenced once (one table, so that a child costs one random
+    /// read, not one in its count and one in its address).
     addr_of_rank: &'a [u64],
     /// Address of each stored node below, by position (`None`: the leaf
     /// level, where it is the position).
@@ -636,11 +650,11 @@ impl LevelLayout<'_> {
                 continue;
             }
             mask |= 1 << p;
-            let child = ((s - 1) >> 3) as usize;
-            if self.counts[child] == 1 {
+            let addr = self.addr_of_rank[((s - 1) >> 3) as usize];
+            if addr == SEQUENTIAL {
                 any_seq = true;
             } else {
-                reference((self.addr_of_rank[child] << 3) | ((s - 1) & 7));
+                reference((addr << 3) | ((s - 1) & 7));
             }
         }
         if any_seq {
@@ -677,7 +691,7 @@ impl LevelLayout<'_> {
             if s == 0 {
                 continue;
             }
-            if self.counts[((s - 1) >> 3) as usize] == 1 {
+            if self.addr_of_rank[((s - 1) >> 3) as usize] == SEQUENTIAL {
                 w.put(0, 2);
             } else {
                 w.put(u64::from(code_of(refs[next]).0), 2);

@@ -137,6 +137,11 @@ pub struct ConvertOptions {
     /// runs one after another: the file is parsed once per process, not once
     /// per region). See [`clear_input_cache`].
     pub cache_input: bool,
+    /// Set by the 2.0 conversion for its 1.0 stage: the 1.0 file is left
+    /// here, in memory, instead of written to `output`, when it fits the
+    /// memory limit beside what is resident (no file written, synced,
+    /// renamed and mapped again to be encoded); else it is written.
+    v1_in_memory: Option<Arc<Mutex<Option<Vec<u8>>>>>,
 }
 
 /// The mesh kept by a conversion with [`ConvertOptions::cache_input`]: the
@@ -308,6 +313,7 @@ impl ConvertOptions {
             extra_inputs: Vec::new(),
             progress_hook: None,
             cache_input: false,
+            v1_in_memory: None,
         }
     }
 }
@@ -656,6 +662,12 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     inner.output = temp.path().to_path_buf();
     inner.force = true;
     inner.format_version = 1;
+    // The hidden --spill-* testing options take the out-of-core way here
+    // too: the 1.0 file is written and mapped again.
+    let in_memory = Arc::new(Mutex::new(None));
+    if opts.forced_spill.is_none() {
+        inner.v1_in_memory = Some(Arc::clone(&in_memory));
+    }
     // The 1.0 stage's errors name the output the user asked for, not the
     // hidden temporary file (a write error there is one writing the output).
     let mut summary = convert_v1(&inner).map_err(|e| match e {
@@ -666,9 +678,21 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         other => other,
     })?;
     let start = Instant::now();
-    let map = dagfmt::mmap::MappedFile::open(temp.path())
-        .map_err(|e| ConvertError::io("cannot read back the 1.0 file", e))?;
-    let dag = dagfmt::Dag::open(map.bytes())
+    // The 1.0 file is in memory when it fitted the limit, else in `temp`.
+    let v1_bytes = in_memory.lock().unwrap_or_else(|e| e.into_inner()).take();
+    let map = match v1_bytes {
+        Some(_) => None,
+        None => Some(
+            dagfmt::mmap::MappedFile::open(temp.path())
+                .map_err(|e| ConvertError::io("cannot read back the 1.0 file", e))?,
+        ),
+    };
+    let bytes = match (&v1_bytes, &map) {
+        (Some(v), _) => v.as_slice(),
+        (None, Some(m)) => m.bytes(),
+        (None, None) => unreachable!("the 1.0 file is in memory or mapped"),
+    };
+    let dag = dagfmt::Dag::open(bytes)
         .map_err(|e| ConvertError::Input(format!("the 1.0 file built does not open: {e}")))?;
     // The encoder's share of the limit: what the 1.0 build left resident
     // and the mapped 1.0 file (read whole) are taken; finished tables
@@ -680,7 +704,11 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     let budget = if opts.forced_spill.is_some() {
         0
     } else {
-        limit.saturating_sub(current_rss().unwrap_or(0) + map.bytes().len() as u64 + margin(limit))
+        limit.saturating_sub(
+            current_rss().unwrap_or(0)
+                + map.as_ref().map_or(0, |m| m.bytes().len() as u64)
+                + margin(limit),
+        )
     };
     let options = dagfmt::v2enc::EncodeOptions {
         memory_budget: Some(budget),
@@ -707,6 +735,8 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         )));
     }
     summary.file_bytes = written?;
+    drop(dag);
+    drop(v1_bytes);
     drop(map);
     drop(temp);
     let upgrade = start.elapsed().as_secs_f64();
@@ -986,14 +1016,34 @@ fn write_output(
         cells: r.index()..r.index() + 1,
         colours: ColourMode::of(colors.is_some(), opts.color_error),
     });
-    summary.file_bytes = write_dag(
-        &opts.output,
-        opts.force,
-        dag,
-        colors,
-        header,
-        placement.as_ref(),
-    )?;
+    summary.file_bytes = match opts.v1_in_memory.as_ref().filter(|_| placement.is_none()) {
+        Some(slot) => {
+            let (layout, emit) = dag_file(dag, colors, header, None)?;
+            let limit = opts
+                .memory_limit
+                .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
+            let resident = current_rss().unwrap_or(0);
+            if resident.saturating_add(layout.file_size()) + margin(limit) <= limit {
+                let mut bytes = Vec::with_capacity(layout.file_size() as usize);
+                layout
+                    .write_to(&mut bytes, emit)
+                    .map_err(|e| ConvertError::io("cannot assemble the 1.0 file in memory", e))?;
+                let len = bytes.len() as u64;
+                *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(bytes);
+                len
+            } else {
+                write_atomic(&opts.output, opts.force, |w| layout.write_to(w, emit))?
+            }
+        }
+        None => write_dag(
+            &opts.output,
+            opts.force,
+            dag,
+            colors,
+            header,
+            placement.as_ref(),
+        )?,
+    };
     summary.write_seconds = t.elapsed().as_secs_f64();
     summary.voxels = dag.voxel_count();
     summary.levels = dag.level_stats();
@@ -1013,23 +1063,41 @@ pub(crate) fn write_dag(
     header: FileHeader,
     placement: Option<&Placement>,
 ) -> Result<u64, ConvertError> {
+    let (layout, emit) = dag_file(dag, colors, header, placement)?;
+    write_atomic(path, force, |w| layout.write_to(w, emit))
+}
+
+/// What a section's bytes are handed to.
+type Sink<'s> = &'s mut dyn FnMut(&[u8]) -> std::io::Result<()>;
+
+/// Hands section `index`'s bytes to a sink (for [`FileLayout::write_to`]).
+type SectionEmitter<'a> = Box<dyn FnMut(usize, Sink<'_>) -> std::io::Result<()> + 'a>;
+
+/// The layout of the file of a finished DAG, its colours and, for a part,
+/// its placement, with the function that hands section `index`'s bytes to
+/// a sink (for [`FileLayout::write_to`]).
+fn dag_file<'a>(
+    dag: &'a FinishedDag,
+    colors: Option<&'a Colours>,
+    header: FileHeader,
+    placement: Option<&'a Placement>,
+) -> Result<(FileLayout, SectionEmitter<'a>), ConvertError> {
     let mut sections = dag.level_sections();
     let levels = sections.len();
     sections.extend(colors.map(Colours::section));
     let coloured = sections.len();
     sections.extend(placement.map(Placement::section));
     let layout = FileLayout::new(header, sections).map_err(build_error)?;
-    write_atomic(path, force, |w| {
-        layout.write_to(w, |index, sink| {
-            if index < levels {
-                dag.emit_level(index, sink)
-            } else if index < coloured {
-                colors.expect("a colour section").emit(sink)
-            } else {
-                sink(&placement.expect("a placement").to_bytes())
-            }
-        })
-    })
+    let emit = Box::new(move |index: usize, sink: Sink<'_>| {
+        if index < levels {
+            dag.emit_level(index, sink)
+        } else if index < coloured {
+            colors.expect("a colour section").emit(sink)
+        } else {
+            sink(&placement.expect("a placement").to_bytes())
+        }
+    });
+    Ok((layout, emit))
 }
 
 /// The Morton codes of the voxels a conversion keeps: those of the region,

@@ -264,6 +264,31 @@ impl ShardedTable {
     }
 }
 
+/// Numbers a batch from what [`ShardedTable::find_or_insert`] found for it
+/// (`found`, against `base`, the table's size before the batch): a record
+/// held before keeps its index, a first occurrence in the batch gets the
+/// index `first(position)` returns (called in the batch's order, so that
+/// the indices are first-seen order), a later occurrence its first's. The
+/// indices to give [`ShardedTable::settle`].
+pub fn number_first_seen<E>(
+    found: &[u64],
+    base: u64,
+    mut first: impl FnMut(usize) -> Result<u32, E>,
+) -> Result<Vec<u32>, E> {
+    let mut ids = vec![0u32; found.len()];
+    for (i, &v) in found.iter().enumerate() {
+        ids[i] = if v < base {
+            v as u32
+        } else if (v - base) as usize == i {
+            first(i)?
+        } else {
+            debug_assert!(((v - base) as usize) < i, "a later first occurrence");
+            ids[(v - base) as usize]
+        };
+    }
+    Ok(ids)
+}
+
 #[cfg(test)]
 mod tests {
     use std::collections::HashMap;
@@ -295,19 +320,11 @@ mod tests {
                     },
                     hash,
                 );
-                let mut ids = vec![0u32; batch.len()];
-                for i in 0..batch.len() {
-                    let v = found[i];
-                    ids[i] = if v < base {
-                        v as u32
-                    } else if (v - base) as usize == i {
-                        held.push(batch[i]);
-                        (held.len() - 1) as u32
-                    } else {
-                        assert!(((v - base) as usize) < i, "a later first occurrence");
-                        ids[(v - base) as usize]
-                    };
-                }
+                let ids = number_first_seen(&found, base, |i| {
+                    held.push(batch[i]);
+                    Ok::<u32, ()>((held.len() - 1) as u32)
+                })
+                .unwrap();
                 table.settle(base, &ids, |_, key| key);
                 ids
             })

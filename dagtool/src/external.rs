@@ -1863,26 +1863,18 @@ impl MemoryMerge {
             leaf_hash,
         );
         let leaves = &mut self.leaves;
-        let mut ids = vec![0u32; masks.len()];
-        for i in 0..masks.len() {
-            let v = found[i];
-            ids[i] = if v < base {
-                v as u32
-            } else if (v - base) as usize == i {
-                let id = u32::try_from(leaves.len())
-                    .ok()
-                    .filter(|&id| u64::from(id) < MAX_LEAF_COUNT)
-                    .ok_or_else(|| {
-                        build_error(BuildError::TooLarge {
-                            what: format!("more than {MAX_LEAF_COUNT} leaves"),
-                        })
-                    })?;
-                leaves.push(masks[i]);
-                id
-            } else {
-                ids[(v - base) as usize]
-            };
-        }
+        let ids = crate::dedup::number_first_seen(&found, base, |i| {
+            let id = u32::try_from(leaves.len())
+                .ok()
+                .filter(|&id| u64::from(id) < MAX_LEAF_COUNT)
+                .ok_or_else(|| {
+                    build_error(BuildError::TooLarge {
+                        what: format!("more than {MAX_LEAF_COUNT} leaves"),
+                    })
+                })?;
+            leaves.push(masks[i]);
+            Ok(id)
+        })?;
         self.leaf_table.settle(base, &ids, |_, mask| mask);
         Ok(ids)
     }
@@ -1966,23 +1958,15 @@ impl MemoryMerge {
                 what: format!("level {level} has more than 2^32 words of records"),
             })
         };
-        let mut ids = vec![0u32; hashes.len()];
-        for i in 0..hashes.len() {
-            let v = found[i];
-            ids[i] = if v < base {
-                v as u32
-            } else if (v - base) as usize == i {
-                let id = u32::try_from(starts.len()).map_err(|_| too_large())?;
-                let record = node_content(&batch.words, batch.starts[i]);
-                let at = u32::try_from(words.len()).map_err(|_| too_large())?;
-                u32::try_from(words.len() + record.len()).map_err(|_| too_large())?;
-                words.extend_from_slice(record);
-                starts.push(at);
-                id
-            } else {
-                ids[(v - base) as usize]
-            };
-        }
+        let ids = crate::dedup::number_first_seen(&found, base, |i| {
+            let id = u32::try_from(starts.len()).map_err(|_| too_large())?;
+            let record = node_content(&batch.words, batch.starts[i]);
+            let at = u32::try_from(words.len()).map_err(|_| too_large())?;
+            u32::try_from(words.len() + record.len()).map_err(|_| too_large())?;
+            words.extend_from_slice(record);
+            starts.push(at);
+            Ok(id)
+        })?;
         let starts = &*starts;
         table.settle(base, &ids, |id, _| u64::from(starts[id as usize]));
         Ok(ids)

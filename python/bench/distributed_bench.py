@@ -9,7 +9,7 @@ the scaling model of BENCHMARKS.md ("Conversions on a Dask cluster").
         [--bandwidth 1e9] [--cores 2]
 
 `overhead` alternates one `dagtool convert` (release build, the same
-`--bounds`, `--format-version 1`: the merge writes format 1.0) with a Dask `LocalCluster` of W worker processes (one thread
+`--bounds`, the same `--format-version`, 2 by default) with a Dask `LocalCluster` of W worker processes (one thread
 each, `--worker-memory` each: Dask's nanny restarts a worker above it),
 checks that the outputs are byte-identical, and reports the medians, their
 ratio, each worker's peak resident memory (the task processes' high-water
@@ -83,13 +83,13 @@ def loadavg() -> list[float]:
     return list(os.getloadavg())
 
 
-def single(dagtool: str, mesh: str, out: Path, depth: int, bounds: str) -> dict:
+def single(dagtool: str, mesh: str, out: Path, depth: int, bounds: str, version: int) -> dict:
     """One `dagtool convert`: wall seconds, peak RSS, CPU seconds and its
     summary's time line."""
     t = time.perf_counter()
     p = subprocess.Popen(
         [dagtool, "convert", mesh, "-o", str(out), "--depth", str(depth), "--bounds", bounds, "--force",
-         "--format-version", "1"],
+         "--format-version", str(version)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
@@ -118,12 +118,14 @@ def cluster(workers: int, memory: str):
     return c, distributed.Client(c)
 
 
-def distributed_run(client, mesh: str, out: Path, depth: int, bounds, k: int, task_memory, fan_in: int) -> dict:
+def distributed_run(client, mesh: str, out: Path, depth: int, bounds, k: int, task_memory, fan_in: int,
+                    version: int) -> dict:
     import vdag.distributed
 
     t = time.perf_counter()
     info = vdag.distributed.convert(
-        mesh, out, depth, client, region_level=k, bounds=bounds, force=True, memory_limit=task_memory, fan_in=fan_in
+        mesh, out, depth, client, region_level=k, bounds=bounds, force=True, memory_limit=task_memory, fan_in=fan_in,
+        format_version=version,
     )
     info["wall_seconds"] = time.perf_counter() - t
     peaks: dict[str, int] = {}
@@ -172,10 +174,10 @@ def cmd_overhead(a) -> dict:
             for what in order:
                 before = loadavg()
                 if what == "single":
-                    pair["single"] = single(a.dagtool, a.input, one, a.depth, btext)
+                    pair["single"] = single(a.dagtool, a.input, one, a.depth, btext, a.format_version)
                 else:
                     pair["dask"] = slim(distributed_run(client, a.input, many, a.depth, bounds, a.region_level,
-                                                       a.task_memory, a.fan_in))
+                                                       a.task_memory, a.fan_in, a.format_version))
                 pair[what]["load_before"] = before
                 pair[what]["load_after"] = loadavg()
                 print(f"# pair {i} {what}: {pair[what].get('seconds', pair[what].get('wall_seconds')):.1f} s, "
@@ -213,11 +215,11 @@ def cmd_scaling(a) -> dict:
             runs = []
             try:
                 for _ in range(a.repeats):
-                    s = single(a.dagtool, a.input, one, a.depth, btext)
+                    s = single(a.dagtool, a.input, one, a.depth, btext, a.format_version)
                     s["load_after"] = loadavg()
                     res["singles"].append(s)
                     info = slim(distributed_run(client, a.input, many, a.depth, bounds, a.region_level,
-                                                a.task_memory, a.fan_in))
+                                                a.task_memory, a.fan_in, a.format_version))
                     info["load_after"] = loadavg()
                     assert same(one, many), "the distributed output is not byte-identical"
                     runs.append(info)
@@ -351,6 +353,8 @@ def main() -> None:
         p.add_argument("depth", type=int)
         p.add_argument("--region-level", type=int, default=2)
         p.add_argument("--fan-in", type=int, default=8)
+        p.add_argument("--format-version", type=int, default=2, choices=(1, 2),
+                       help="the version both the single build and the distributed one write")
         p.add_argument("--worker-memory", default="4GiB")
         p.add_argument("--task-memory", default=None, help="each task's memory_limit (default: the converter's)")
         p.add_argument("--dagtool", default=str(ROOT / "target/release/dagtool"))

@@ -232,7 +232,7 @@ fn record_chain(view: &LevelView<'_>, depth: usize) -> Result<Chain, FormatError
             return Err(stop(depth, at, "the expanded level is over 2^29 words"));
         }
         let ordinal = first_word.len() as u64;
-        if ordinal % CHUNK_RECORDS == 0 {
+        if ordinal.is_multiple_of(CHUNK_RECORDS) {
             chunks.push((ordinal, at));
         }
         starts[(at / 64) as usize] |= 1 << (at % 64);

@@ -18,7 +18,7 @@ use dagfmt::output::OutputError;
 use dagtrace::Tracer;
 use dagtrace::camera::Camera;
 use dagtrace::lit::{LitOptions, render_lit};
-use dagtrace::render::{Shade, render, shade_hits_colored};
+use dagtrace::render::{Shade, render};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -504,7 +504,7 @@ fn shade_on_gpu(
     } else {
         Vec::new()
     };
-    Ok(shade_hits_colored(&hits, shade, &colors))
+    Ok(dagtrace::render::shade_hits_colored(&hits, shade, &colors))
 }
 
 #[cfg(not(feature = "gpu"))]

@@ -172,6 +172,7 @@ fn cpu_and_gpu_render_packed_colours_alike() {
 /// The device's colours for the GPU's own hits are the CPU decoder's, bit
 /// for bit, for raw, lossless and lossy files; so the images the two back
 /// ends shade from the same hits are identical (`--shade color` and lit).
+#[cfg(feature = "gpu")]
 #[test]
 fn gpu_decoded_colours_are_the_cpu_decoders() {
     use dagtrace::gpu::{GpuError, GpuOptions, GpuTracer};

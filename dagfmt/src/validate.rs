@@ -1114,15 +1114,21 @@ fn walk_parts<const W: usize, C: ChildLevel>(
         Vec::new()
     };
     let reported_before = f.errors.len();
-    let mut ends = walk_split::<W, C>(f, view, child, attributes, &mut counts, &mut blocks, &splits)?;
+    let mut ends = walk_split::<W, C>(
+        f,
+        view,
+        child,
+        attributes,
+        &mut counts,
+        &mut blocks,
+        &splits,
+    )?;
     if ends.len() < splits.len() + 1 {
         // A split was not confirmed: undo and walk the level in one part.
         f.errors.truncate(reported_before);
         child.clear_marks();
         counts.reset();
-        blocks
-            .iter_mut()
-            .for_each(|b| *b = WordBlock::default());
+        blocks.iter_mut().for_each(|b| *b = WordBlock::default());
         ends = walk_split::<W, C>(f, view, child, attributes, &mut counts, &mut blocks, &[])?;
     }
     let block_cuts = splits.iter().map(|&s| (s / 4).div_ceil(64));
@@ -1304,7 +1310,7 @@ fn prefetch_record<const W: usize, C: ChildLevel>(
 
 /// Asks for the cache line holding `*at` (a hint: no effect on results).
 #[inline(always)]
-fn prefetch<T>(at: &T) {
+pub(crate) fn prefetch<T>(at: &T) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
@@ -1759,7 +1765,9 @@ mod tests {
             record_starts_hit * 100 >= splits_found * 95,
             "{record_starts_hit} of {splits_found} splits are record starts"
         );
-        println!("{record_starts_hit} of {splits_found} splits are record starts, {unframed_hit} unframed");
+        println!(
+            "{record_starts_hit} of {splits_found} splits are record starts, {unframed_hit} unframed"
+        );
         assert!(unframed_hit < record_starts_hit, "{unframed_hit} unframed");
     }
 
@@ -1823,8 +1831,7 @@ mod tests {
                 // and from one record after them.
                 for parts in 2..=MAX_PARTS {
                     for sync_records in [SYNC_RECORDS, 0, 1] {
-                        let split =
-                            validate_walked(&bytes, &options, walk_in(parts, sync_records));
+                        let split = validate_walked(&bytes, &options, walk_in(parts, sync_records));
                         assert_eq!(
                             split, one,
                             "seed {seed}, {parts} parts, sync {sync_records}, at most {max_errors} findings"

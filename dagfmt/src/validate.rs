@@ -7,9 +7,11 @@
 //!
 //! The work is linear in the file size: one pass of CRC-32C over every
 //! section (on a second thread for large files, see
-//! [`ValidateOptions::threads`]), one sequential pass over each level's
-//! records, and per level two bitmaps (record starts and referenced records,
-//! 1/16 of the level's size) plus one subtree voxel count per two words of the
+//! [`ValidateOptions::threads`]), one pass over each level's records (in 1.0,
+//! a large level in contiguous parts on up to [`MAX_PARTS`] threads, with the
+//! findings of one sequential pass), and per level a bitmap of record starts
+//! and one of referenced records per part (together 1/8 of the level's
+//! size) plus one subtree voxel count per two words of the
 //! level (16, 32 or 64 bits as the level's depth needs: at most the level's
 //! size). Only two levels' indexes are held at a time; nothing is allocated
 //! per node.

@@ -38,8 +38,8 @@
 use crate::error::{ErrorCode, FormatError};
 use crate::layout::{AttributeKind, COUNT_SATURATED};
 use crate::reader::{self, SectionEntry};
-use crate::v2::{self, Child, LevelView};
-use crate::validate::{Findings, Stop};
+use crate::v2::{self, Child, LevelView, Node2, References};
+use crate::validate::{Findings, Stop, prefetch};
 
 /// The record starts of a 2.0 node level as a bitmap with ranks, so that
 /// the item a byte offset names is found in O(1): a binary search over the
@@ -332,6 +332,76 @@ pub(crate) fn check_levels(
     Ok(())
 }
 
+/// How many records ahead of the walk [`prefetch_children`] asks for
+/// tallies (and twice as many for record starts).
+const PREFETCH_RECORDS: usize = 8;
+
+/// What [`prefetch_children`] asks for.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Stage {
+    /// The record-start blocks of the children's targets.
+    Starts,
+    /// Their tallies (the blocks were asked for earlier).
+    Tallies,
+}
+
+/// Records decoded ahead of the walk: offset and decoding.
+type Ahead = std::collections::VecDeque<(u64, Result<(Node2, References), FormatError>)>;
+
+/// Decodes the record at `*ahead` into `ring` and asks for the record-start
+/// blocks of its children's targets; moves `*ahead` to the next record (to
+/// the level's end after a record that does not decode, which the walk
+/// reports when it reaches it).
+fn decode_ahead(
+    view: &LevelView<'_>,
+    ring: &mut Ahead,
+    ahead: &mut u64,
+    below: Option<&Walked>,
+    child_is_leaf: bool,
+) {
+    let len = view.bytes.len() as u64;
+    if *ahead >= len {
+        return;
+    }
+    let decoded = v2::decode_node_references(view.bytes, *ahead, view.widths);
+    let at = *ahead;
+    match &decoded {
+        Ok((node, _)) => {
+            if let Some(b) = below {
+                prefetch_children(node, b, child_is_leaf, Stage::Starts);
+            }
+            *ahead += u64::from(node.size);
+        }
+        Err(_) => *ahead = len,
+    }
+    ring.push_back((at, decoded));
+}
+
+/// Asks for the cache lines the walk of `node` will read in the level
+/// below (a hint: no effect on results).
+fn prefetch_children(node: &Node2, below: &Walked, child_is_leaf: bool, stage: Stage) {
+    for child in node.children.iter().flatten() {
+        let target = match *child {
+            Child::Shared { target, .. } => target,
+            Child::Sequential { index: 0, base } => base,
+            Child::Sequential { .. } => continue,
+        };
+        if child_is_leaf || stage == Stage::Tallies {
+            if let Some(tally) = below
+                .item(child_is_leaf, target)
+                .and_then(|i| below.items.get(i))
+            {
+                prefetch(tally);
+            }
+        } else if let Some(block) = usize::try_from(target / 64)
+            .ok()
+            .and_then(|b| below.index.blocks.get(b))
+        {
+            prefetch(block);
+        }
+    }
+}
+
 /// Walks node level `l` (E071, E041, E072, E073, E074, E079, E060, E061)
 /// and then checks how the level below is named (E078). Returns the level
 /// as walked and, per item of the level below, the references and runs
@@ -354,9 +424,23 @@ fn walk_level(
     let mut complete = true;
     let mut hist = [0u64; 65];
     let child_items = below.as_ref().map_or(0, |b| b.items.len());
-    let mut at = 0u64;
     let len = view.bytes.len() as u64;
-    while at < len {
+    // The records are decoded 2K records ahead of the walk, which asks then
+    // for the record-start blocks of their children's targets and, K
+    // records ahead (when those have arrived), for their tallies, so that
+    // the misses of many records overlap.
+    let mut ring: Ahead = std::collections::VecDeque::with_capacity(2 * PREFETCH_RECORDS + 1);
+    let mut ahead = 0u64;
+    for _ in 0..2 * PREFETCH_RECORDS {
+        decode_ahead(view, &mut ring, &mut ahead, below.as_deref(), child_is_leaf);
+    }
+    while let Some((at, decoded)) = ring.pop_front() {
+        decode_ahead(view, &mut ring, &mut ahead, below.as_deref(), child_is_leaf);
+        if let (Some(b), Some((_, Ok((node, _))))) =
+            (below.as_deref(), ring.get(PREFETCH_RECORDS - 1))
+        {
+            prefetch_children(node, b, child_is_leaf, Stage::Tallies);
+        }
         let index = flat.starts.len() as u64;
         let record_at = base_offset + at;
         let report_at = |code, message: String| {
@@ -364,7 +448,7 @@ fn walk_level(
                 .at_level(level)
                 .at_node(index)
         };
-        let (node, refs) = match v2::decode_node_references(view.bytes, at, view.widths) {
+        let (node, refs) = match decoded {
             Ok(decoded) => decoded,
             Err(e) => {
                 f.report(report_at(ErrorCode::TruncatedRecord2, e.message))?;
@@ -502,7 +586,6 @@ fn walk_level(
         }
         items.push(Tally::new(sum));
         flat.first.push(flat.kids.len() as u64);
-        at += u64::from(node.size);
     }
     if complete && flat.starts.len() as u64 != entry.item_count {
         f.report(

@@ -38,7 +38,9 @@ use rayon::prelude::*;
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::Dag;
 use crate::symmetry::{NodeKey, reflect_leaf};
-use crate::v2::{BitWriter, Encoded, EncodedLevel, best_widths, norm, reflect_key};
+use crate::v2::{
+    BitWriter, Encoded, EncodedLevel, best_widths, least_reflected_key_in, norm, reflect_key,
+};
 use crate::v2file::ConvertError;
 
 /// How [`encode_levels`] may use memory.
@@ -56,9 +58,10 @@ pub struct EncodeOptions {
 }
 
 /// Bytes of the merge pass's working set per 1.0 node of a level: its form
-/// (key, node, reflection, stabiliser: 80 bytes) and its start word (4),
-/// plus the ranked key of its class (72) at worst; the tables by word of the
-/// level and the level below add 8 bytes a word.
+/// (packed key, node, reflection, stabiliser: 48 bytes) and its start word
+/// (4), plus the ranked key of its class (72) at worst, with room to spare
+/// (the forms were 80 bytes); the tables by word of the level and the level
+/// below add 8 bytes a word.
 const WORK_BYTES_PER_NODE: u64 = 160;
 
 /// A chunk's first-sequential-child positions and its sequential children
@@ -317,7 +320,8 @@ impl Store {
 /// A 1.0 node in intrinsic terms, least of its reflected forms.
 #[derive(Clone, Copy, Debug)]
 struct Form {
-    key: NodeKey,
+    /// The least form, packed so that it sorts as the [`NodeKey`] does.
+    key: PackedKey,
     /// Ordinal of the 1.0 node in its level.
     node: u32,
     /// The reflection from the node to its least form (the same one turns
@@ -325,6 +329,75 @@ struct Form {
     reflection: u8,
     /// The stabiliser of the least form, as a bit set of reflections.
     stab: u8,
+}
+
+/// A [`NodeKey`] as one 320-bit string, most significant bits first: the 8
+/// slot values in `slot_bits` bits each, then the 32 attribute bits. Fields
+/// of fixed widths, each below 2^width, so the strings (compared word by
+/// word) are in the order of the keys, and equal exactly when the keys are:
+/// the level's sort compares and moves 40 bytes, not 68 compared field by
+/// field. A slot value is at most 2^35 (ranks are below 2^32), so 36 bits
+/// always do and 8 · 36 + 32 = 320.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+struct PackedKey([u64; 5]);
+
+impl PackedKey {
+    /// Bits per slot for a level whose classes below number `classes_below`:
+    /// the largest slot value is `8 · classes_below` (§23.6).
+    fn slot_bits(classes_below: usize) -> u32 {
+        bits_of(8 * classes_below as u64)
+    }
+
+    fn pack(key: &NodeKey, slot_bits: u32) -> PackedKey {
+        let mut words = [0u64; 5];
+        let mut at = 0u32;
+        for &s in &key.slots {
+            debug_assert!(bits_of(s) <= slot_bits);
+            put_bits(&mut words, at, s, slot_bits);
+            at += slot_bits;
+        }
+        put_bits(&mut words, at, u64::from(key.attribute), 32);
+        PackedKey(words)
+    }
+
+    fn unpack(&self, slot_bits: u32) -> NodeKey {
+        let mut key = NodeKey {
+            slots: [0; 8],
+            attribute: 0,
+        };
+        let mut at = 0u32;
+        for s in &mut key.slots {
+            *s = get_bits(&self.0, at, slot_bits);
+            at += slot_bits;
+        }
+        key.attribute = get_bits(&self.0, at, 32) as u32;
+        key
+    }
+}
+
+/// ORs `value` (below 2^`bits`, `bits` 1..=64) into `words` at bit `at`,
+/// counted from the most significant bit of `words[0]`.
+fn put_bits(words: &mut [u64; 5], at: u32, value: u64, bits: u32) {
+    let (i, off) = ((at / 64) as usize, at % 64);
+    let end = off + bits;
+    if end <= 64 {
+        words[i] |= value << (64 - end);
+    } else {
+        words[i] |= value >> (end - 64);
+        words[i + 1] |= value << (128 - end);
+    }
+}
+
+/// The `bits` bits (1..=64) of `words` at bit `at`, as [`put_bits`] put them.
+fn get_bits(words: &[u64; 5], at: u32, bits: u32) -> u64 {
+    let (i, off) = ((at / 64) as usize, at % 64);
+    let end = off + bits;
+    let mask = u64::MAX >> (64 - bits);
+    if end <= 64 {
+        (words[i] >> (64 - end)) & mask
+    } else {
+        ((words[i] << (end - 64)) | (words[i + 1] >> (128 - end))) & mask
+    }
 }
 
 /// The stabiliser of a leaf mask: the reflections that leave it unchanged.
@@ -337,6 +410,18 @@ fn leaf_stab(mask: u64) -> u8 {
 /// The slot value (§23.6) naming class `rank` reached by reflection `r`.
 fn slot_value(rank: usize, r: u8) -> u64 {
     1 + ((rank as u64) << 3) + u64::from(r)
+}
+
+/// What the merge of a level leaves for the level above, by ordinal of each
+/// of its 1.0 nodes (by index of each leaf): the slot value naming the node
+/// in the low bits, and the stabiliser of its class in
+/// the top 8 (bits [`STAB_SHIFT`]..), so that the level above reads one
+/// table per child, not also the stabilisers by rank.
+const STAB_SHIFT: u32 = 56;
+
+/// The slot value and the class stabiliser kept at a word of `slot_at`.
+fn slot_and_stab(rank: usize, r: u8, stab: u8) -> u64 {
+    slot_value(rank, norm(r, stab)) | (u64::from(stab) << STAB_SHIFT)
 }
 
 /// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), the
@@ -396,9 +481,14 @@ pub fn encode_levels(
     let mut canon: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
     let mut class_counts = vec![0usize; leaf_level + 1];
     class_counts[leaf_level] = leaf_classes;
+    // The node starts of the level below (`None`: the leaves, numbered by
+    // their index already).
+    let mut child_starts: Option<RecordStarts> = None;
     for level in (0..leaf_level).rev() {
-        let (keys, level_stabs, next_slot_at) = merge_level(dag, level, &slot_at, &child_stabs)?;
+        let (keys, level_stabs, next_slot_at, starts) =
+            merge_level(dag, level, &slot_at, child_starts.as_ref(), &child_stabs)?;
         slot_at = next_slot_at;
+        child_starts = Some(starts);
         class_counts[level] = keys.len();
         canon[level] = Some(store.keep(keys)?);
         stabs[level + 1] = Some(store.keep(std::mem::replace(&mut child_stabs, level_stabs))?);
@@ -406,6 +496,7 @@ pub fn encode_levels(
     // The root's stabiliser is not needed: nothing refers to it.
     drop(child_stabs);
     drop(slot_at);
+    drop(child_starts);
 
     // Pass 2: the order of each level, top-down (§23.7).
     let mut stored: Vec<(u32, u8)> = vec![(0, 0)];
@@ -440,7 +531,11 @@ pub fn encode_levels(
         // and most sequential ones, are stored without a reflection.
         let as_stored: Vec<NodeKey> = stored
             .par_iter()
-            .map(|&(rank, applied)| {
+            .enumerate()
+            .map(|(i, &(rank, applied))| {
+                if let Some(&(ahead, _)) = stored.get(i + AHEAD) {
+                    prefetch(&keys[ahead as usize]);
+                }
                 let key = &keys[rank as usize];
                 if applied == 0 {
                     *key
@@ -541,7 +636,10 @@ pub fn encode_levels(
             .zip(firsts.par_chunks(LAYOUT_CHUNK))
             .map(|(keys, firsts)| {
                 let mut hist = [0u64; 65];
-                for (key, &first) in keys.iter().zip(firsts) {
+                for (i, (key, &first)) in keys.iter().zip(firsts).enumerate() {
+                    if let Some(ahead) = keys.get(i + AHEAD) {
+                        layout.prefetch(ahead);
+                    }
                     layout.record(key, first, |v| hist[bits_of(v) as usize] += 1);
                 }
                 hist
@@ -572,7 +670,10 @@ pub fn encode_levels(
             .map(|(keys, firsts)| {
                 let mut out = Vec::new();
                 let mut offsets = Vec::with_capacity(keys.len());
-                for (key, &first) in keys.iter().zip(firsts) {
+                for (i, (key, &first)) in keys.iter().zip(firsts).enumerate() {
+                    if let Some(ahead) = keys.get(i + AHEAD) {
+                        layout.prefetch(ahead);
+                    }
                     offsets.push(out.len() as u64);
                     layout.write(key, first, widths, &mut out);
                 }
@@ -622,6 +723,27 @@ fn bits_of(v: u64) -> u32 {
     (64 - v.leading_zeros()).max(1)
 }
 
+/// How many items ahead the gathers and scatters into tables in random
+/// order (by rank, by ordinal) ask for their cache line: the encoder's
+/// time goes mostly to these misses, and they are independent, so asking
+/// early overlaps them.
+const AHEAD: usize = 16;
+
+/// Asks the cache for the line of `item` (a hint: it changes no result).
+#[inline(always)]
+fn prefetch<T>(item: &T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing into the program and cannot fault;
+    // the pointer comes from a reference anyway.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+            (item as *const T).cast::<i8>(),
+        );
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = item;
+}
+
 /// The address of a class below in [`LevelLayout::addr_of_rank`] that is
 /// referenced once: a sequential child, which has no reference of its own.
 const SEQUENTIAL: u64 = u64::MAX;
@@ -638,6 +760,16 @@ struct LevelLayout<'a> {
 }
 
 impl LevelLayout<'_> {
+    /// Asks the cache for what [`LevelLayout::record`] of `key` will read.
+    #[inline]
+    fn prefetch(&self, key: &NodeKey) {
+        for &s in &key.slots {
+            if s != 0 {
+                prefetch(&self.addr_of_rank[((s - 1) >> 3) as usize]);
+            }
+        }
+    }
+
     /// Calls `reference` with each shared child's reference value in
     /// physical slot order, then with the base reference, if any, of the
     /// record of `key` whose first sequential child is at position `first`.
@@ -749,8 +881,9 @@ fn merge_leaves(
         |a, b| a.0 == b.0,
         |f| (f.0, leaf_stab(f.0)),
         |&(_, i, r), rank, &(_, stab)| {
-            slot_at[i as usize].store(slot_value(rank, norm(r, stab)), Ordering::Relaxed);
+            slot_at[i as usize].store(slot_and_stab(rank, r, stab), Ordering::Relaxed);
         },
+        |&(_, i, _)| prefetch(&slot_at[i as usize]),
     );
     Ok((leaves, stabs, slot_at))
 }
@@ -758,7 +891,9 @@ fn merge_leaves(
 /// Numbers the classes of `forms`, sorted so that equal forms (`same`) are
 /// adjacent, by their order: returns each class's two parts made by `class`
 /// from its first form, in rank order, and calls `assign` with each form,
-/// the rank of its class and the class's parts. In parallel chunks (the
+/// the rank of its class and the class's parts (and `ahead` with the form
+/// [`AHEAD`] places later, to prefetch what `assign` will write). In
+/// parallel chunks (the
 /// ranks at each chunk's start counted first); the result does not depend
 /// on the chunks.
 fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
@@ -766,6 +901,7 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
     same: impl Fn(&F, &F) -> bool + Sync,
     class: impl Fn(&F) -> (A, B) + Sync,
     assign: impl Fn(&F, usize, &(A, B)) + Sync,
+    ahead: impl Fn(&F) + Sync,
 ) -> (Vec<A>, Vec<B>) {
     let starts_class = |i: usize| i == 0 || !same(&forms[i - 1], &forms[i]);
     let new_classes: Vec<usize> = forms
@@ -793,6 +929,9 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
             let mut rank = first_rank[ci].wrapping_sub(1);
             let mut current = (ci > 0).then(|| class(&forms[ci * LAYOUT_CHUNK - 1]));
             for (j, f) in chunk.iter().enumerate() {
+                if let Some(later) = chunk.get(j + AHEAD) {
+                    ahead(later);
+                }
                 if starts_class(ci * LAYOUT_CHUNK + j) {
                     rank = rank.wrapping_add(1);
                     let parts = class(f);
@@ -814,45 +953,108 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
     (a, b)
 }
 
+/// Where the records of a 1.0 node level start: a bit per word, set at each
+/// record's first word, and the starts before each block of 64 words, so
+/// that a pointer (a word) becomes the ordinal of its node with two reads of
+/// small tables. The merge's tables by node are then by ordinal, 4–6 times
+/// smaller than tables by word (a record is 1 + its pointers' words), and so
+/// are the random reads and writes into them.
+struct RecordStarts {
+    /// Bit `w % 64` of block `w / 64`: a record starts at word `w`.
+    bits: Vec<u64>,
+    /// Records starting before each block.
+    before: Vec<u32>,
+}
+
+impl RecordStarts {
+    /// The ordinal of the record starting at word `w`, if one does.
+    #[inline]
+    fn ordinal(&self, w: u32) -> Option<usize> {
+        let (block, bit) = ((w / 64) as usize, w % 64);
+        let bits = *self.bits.get(block)?;
+        (bits >> bit & 1 != 0).then(|| {
+            self.before[block] as usize + (bits & ((1u64 << bit) - 1)).count_ones() as usize
+        })
+    }
+}
+
 /// Interior level `level`, merged and ranked through `slot_at` (the slot
-/// value of each 1.0 node of the level below by its word, or of each leaf by
-/// its index; 0 where none starts) and the stabilisers of the classes
-/// below (`child_stabs`, by rank): the ranked keys, their stabilisers, and
-/// the slot value of each 1.0 node of this level by its word.
+/// value and class stabiliser of each node of the level below by ordinal,
+/// its record found through `child_starts`, or of each leaf by its index
+/// when `child_starts` is `None`) and the stabilisers of the classes below
+/// (`child_stabs`, by rank): the ranked keys, their stabilisers, the slot
+/// value and stabiliser of each 1.0 node of this level by ordinal, and
+/// where its records start.
 #[allow(clippy::type_complexity)]
 fn merge_level(
     dag: &Dag<'_>,
     level: usize,
     slot_at: &[AtomicU64],
+    child_starts: Option<&RecordStarts>,
     child_stabs: &[u8],
-) -> Result<(Vec<NodeKey>, Vec<u8>, Vec<AtomicU64>), FormatError> {
+) -> Result<(Vec<NodeKey>, Vec<u8>, Vec<AtomicU64>, RecordStarts), FormatError> {
     let section = &dag.levels()[level];
     let units = section.units();
     let level8 = level as u8;
-    // The node starts: each record's size is in its header.
+    // The node starts: each record's size is in its header's child mask (a
+    // table of the sizes by mask, in words, for this serial walk).
+    let words_of: [u64; 256] = std::array::from_fn(|mask| {
+        crate::layout::node_record_size((mask as u8).count_ones(), section.pointer_width) / 4
+    });
     let mut starts: Vec<u32> = Vec::with_capacity(section.node_count as usize);
+    let mut bits = vec![0u64; units.div_ceil(64) as usize];
     let mut word = 0u64;
     while word < units {
         let w = u32::try_from(word).expect("a 1.0 level has fewer than 2^32 words");
         starts.push(w);
-        word += dag.node(level8, w)?.record_size() / 4;
+        bits[(w / 64) as usize] |= 1 << (w % 64);
+        word += words_of[usize::from(section.bytes[4 * w as usize])];
     }
+    if word > units {
+        // The last record runs past the level: the reader says how.
+        dag.node(level8, *starts.last().expect("a record started"))?;
+    }
+    let mut before = Vec::with_capacity(bits.len());
+    let mut count = 0u32;
+    for b in &bits {
+        before.push(count);
+        count += b.count_ones();
+    }
+    let record_starts = RecordStarts { bits, before };
+    let slot_bits = PackedKey::slot_bits(child_stabs.len());
+    let ordinal_of = |p: u32| match child_starts {
+        Some(starts) => starts.ordinal(p),
+        None => Some(p as usize),
+    };
     let mut forms: Vec<Form> = starts
         .par_iter()
         .enumerate()
         .map(|(i, &w)| {
+            // The children of the node AHEAD places on, asked for early.
+            if let Some(node) = starts
+                .get(i + AHEAD)
+                .and_then(|&a| dag.node(level8, a).ok())
+            {
+                for k in 0..node.child_mask().count_ones() {
+                    if let Some(s) = ordinal_of(node.pointer_at(k)).and_then(|o| slot_at.get(o)) {
+                        prefetch(s);
+                    }
+                }
+            }
             let node = dag.node(level8, w)?;
             let mut key = NodeKey {
                 slots: [0; 8],
                 attribute: node.attribute(),
             };
+            // The children's stabilisers, by slot (1 where none is).
+            let mut stabs = [1u8; 8];
             let mut rank = 0;
             for slot in 0..8u32 {
                 if node.child_mask() >> slot & 1 != 0 {
                     let p = node.pointer_at(rank);
                     rank += 1;
-                    let s = slot_at
-                        .get(p as usize)
+                    let s = ordinal_of(p)
+                        .and_then(|o| slot_at.get(o))
                         .map_or(0, |s| s.load(Ordering::Relaxed));
                     if s == 0 {
                         return Err(FormatError::new(
@@ -861,53 +1063,50 @@ fn merge_level(
                             format!("level {level}: pointer {p} names no node"),
                         ));
                     }
-                    key.slots[slot as usize] = s;
+                    key.slots[slot as usize] = s & ((1 << STAB_SHIFT) - 1);
+                    stabs[slot as usize] = (s >> STAB_SHIFT) as u8;
                 }
             }
             if level == 0 {
                 // The root is stored as it is (§23.6).
                 return Ok(Form {
-                    key,
+                    key: PackedKey::pack(&key, slot_bits),
                     node: i as u32,
                     reflection: 0,
                     stab: 1,
                 });
             }
-            Ok(least_reflection(key, i as u32, child_stabs))
+            let (key, reflection, stab) = least_reflected_key_in(&key, &stabs);
+            Ok(Form {
+                key: PackedKey::pack(&key, slot_bits),
+                node: i as u32,
+                reflection,
+                stab,
+            })
         })
         .collect::<Result<_, FormatError>>()?;
     forms.par_sort_unstable_by(|a, b| a.key.cmp(&b.key));
-    // The level above reads these by word; the root has no level above.
-    let next_slot_at: Vec<AtomicU64> = (0..if level > 0 { units } else { 0 })
+    // The level above reads these by ordinal; the root has no level above.
+    let next_slot_at: Vec<AtomicU64> = (0..if level > 0 { starts.len() } else { 0 })
         .map(|_| AtomicU64::new(0))
         .collect();
     let (keys, stabs) = rank_sorted(
         &forms,
         |a, b| a.key == b.key,
-        |f| (f.key, f.stab),
+        |f| (f.key.unpack(slot_bits), f.stab),
         |f, rank, _| {
             if level > 0 {
-                next_slot_at[starts[f.node as usize] as usize].store(
-                    slot_value(rank, norm(f.reflection, f.stab)),
-                    Ordering::Relaxed,
-                );
+                next_slot_at[f.node as usize]
+                    .store(slot_and_stab(rank, f.reflection, f.stab), Ordering::Relaxed);
+            }
+        },
+        |f| {
+            if level > 0 {
+                prefetch(&next_slot_at[f.node as usize]);
             }
         },
     );
-    Ok((keys, stabs, next_slot_at))
-}
-
-/// The least of the 8 reflected forms of `key` (the first reflection
-/// reaching it on ties), as the form of 1.0 node `node`; `child_stabs` are
-/// the stabilisers of the classes below, by rank.
-fn least_reflection(key: NodeKey, node: u32, child_stabs: &[u8]) -> Form {
-    let (key, reflection, stab) = crate::v2::least_reflected_key(&key, child_stabs);
-    Form {
-        key,
-        node,
-        reflection,
-        stab,
-    }
+    Ok((keys, stabs, next_slot_at, record_starts))
 }
 
 #[cfg(test)]
@@ -936,6 +1135,56 @@ mod tests {
             }
         }
         vs
+    }
+
+    /// A key whose slot values fit `slot_bits` bits, from raw draws.
+    fn key_within(slot_bits: u32, slots: [u64; 8], attribute: u32) -> NodeKey {
+        let max = (1u64 << slot_bits) - 1;
+        NodeKey {
+            slots: slots.map(|s| s & max),
+            attribute,
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        // Packed keys give the key back and sort (and compare equal) as the
+        // keys do, at every slot width the encoder uses.
+        #[test]
+        fn packed_keys_keep_the_keys_order(
+            slot_bits in 1u32..=36,
+            a in proptest::array::uniform8(any::<u64>()),
+            b in proptest::array::uniform8(any::<u64>()),
+            shared in 0usize..=8,
+            attributes in (any::<u32>(), any::<u32>()),
+        ) {
+            let ka = key_within(slot_bits, a, attributes.0);
+            let mut kb = key_within(slot_bits, b, attributes.1);
+            // Keys that agree on their first slots, to reach the later fields.
+            kb.slots[..shared].copy_from_slice(&ka.slots[..shared]);
+            if shared == 8 && attributes.0 % 2 == 0 {
+                kb.attribute = ka.attribute;
+            }
+            let (pa, pb) = (PackedKey::pack(&ka, slot_bits), PackedKey::pack(&kb, slot_bits));
+            prop_assert_eq!(pa.unpack(slot_bits), ka);
+            prop_assert_eq!(pb.unpack(slot_bits), kb);
+            prop_assert_eq!(pa.cmp(&pb), ka.cmp(&kb));
+            prop_assert_eq!(pa == pb, ka == kb);
+        }
+    }
+
+    #[test]
+    fn the_widest_slots_fit_the_packed_key() {
+        // Ranks below 2^32: the largest slot value is 2^35, 36 bits.
+        let bits = PackedKey::slot_bits(1 << 32);
+        assert_eq!(bits, 36);
+        let key = NodeKey {
+            slots: [1 << 35; 8],
+            attribute: u32::MAX,
+        };
+        assert_eq!(PackedKey::pack(&key, bits).unpack(bits), key);
+        assert_eq!(PackedKey::slot_bits(1), 4);
     }
 
     proptest! {

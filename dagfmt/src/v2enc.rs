@@ -533,8 +533,21 @@ pub fn encode_levels(
             .par_iter()
             .enumerate()
             .map(|(i, &(rank, applied))| {
-                if let Some(&(ahead, _)) = stored.get(i + AHEAD) {
-                    prefetch(&keys[ahead as usize]);
+                // Two steps ahead: the key (72 bytes, two lines), then, once
+                // it is near, the stabilisers a reflection of it reads.
+                if let Some(&(ahead, _)) = stored.get(i + 2 * AHEAD) {
+                    let key = &keys[ahead as usize];
+                    prefetch(&key.slots[0]);
+                    prefetch(&key.attribute);
+                }
+                if let Some(&(ahead, r)) = stored.get(i + AHEAD) {
+                    if r != 0 {
+                        for &s in &keys[ahead as usize].slots {
+                            if s != 0 {
+                                prefetch(&child_stabs[((s - 1) >> 3) as usize]);
+                            }
+                        }
+                    }
                 }
                 let key = &keys[rank as usize];
                 if applied == 0 {

@@ -491,10 +491,11 @@ pub(super) fn merge_leaves_external(
     let reflect = leaf_level > 0;
     // Held: a rank and a reflection per leaf, a stabiliser per class.
     let held = 6 * n as u64;
+    // A chunk's forms twice (collected in pieces, then joined).
     let chunk = chunk_items(
         n,
         room.saturating_sub(held),
-        std::mem::size_of::<LeafForm>(),
+        2 * std::mem::size_of::<LeafForm>(),
         MAX_RUNS,
     );
     let mut rank = vec![0u32; n];
@@ -582,10 +583,12 @@ pub(super) fn merge_level_external(
     // Held: a rank and a reflection per node, a stabiliser per class, the
     // start index (about 3/16 of a byte per word).
     let held = 6 * n as u64 + units / 8 + units / 16;
+    // A chunk's starts and its forms twice (collected in pieces, then
+    // joined).
     let chunk = chunk_items(
         n,
         room.saturating_sub(held),
-        std::mem::size_of::<Form>() + 4,
+        2 * std::mem::size_of::<Form>() + 4,
         MAX_RUNS,
     );
     let mut index = NodeIndex::new(units);

@@ -32,7 +32,7 @@
 //! (`merge_work`, `order_work`, `layout_work`: 160 bytes per 1.0 node and 8
 //! per word in the merge, about 170 per class in the order pass, 116 per
 //! record and twice its bytes in the layout). A pass whose working set is
-//! over the budget goes out of core instead ([`external`]: the merge as an
+//! over the budget goes out of core instead (module `external`: the merge as an
 //! external sort of the level's forms in runs, the order and the layout a
 //! chunk at a time), within the budget; it makes the same tables, so the
 //! bytes are again the same. The leaves' layout (44 bytes per leaf class)
@@ -132,7 +132,7 @@ fn layout_work(dag: &Dag<'_>, level: usize, classes: usize, below: usize) -> u64
 /// The largest working set of a pass in memory over the levels of `dag`,
 /// with as many classes as 1.0 nodes (the most there can be). A level whose
 /// pass does not fit the budget takes that pass out of core
-/// ([`external`]), within the budget; the leaves' layout and the root's
+/// (module `external`), within the budget; the leaves' layout and the root's
 /// merge are always in memory.
 fn working_set(dag: &Dag<'_>) -> u64 {
     let levels = dag.levels();

@@ -27,6 +27,16 @@
 //! tables are, never what they hold, so the output does not depend on the
 //! budget (nor on the number of threads: every parallel step is a map whose
 //! results are joined in order, or a sort of distinct keys).
+//!
+//! Each pass over a level holds a working set that grows with the level
+//! (`merge_work`, `order_work`, `layout_work`: 160 bytes per 1.0 node and 8
+//! per word in the merge, about 170 per class in the order pass, 116 per
+//! record and twice its bytes in the layout). A pass whose working set is
+//! over the budget goes out of core instead (module `external`: the merge as an
+//! external sort of the level's forms in runs, the order and the layout a
+//! chunk at a time), within the budget; it makes the same tables, so the
+//! bytes are again the same. The leaves' layout (44 bytes per leaf class)
+//! and the root's merge are always in memory.
 
 use std::fs::File;
 use std::io::{self, Read, Seek, SeekFrom, Write};
@@ -43,14 +53,22 @@ use crate::v2::{
 };
 use crate::v2file::ConvertError;
 
+mod external;
+use external::Slots;
+
 /// How [`encode_levels`] may use memory.
 #[derive(Clone, Debug, Default)]
 pub struct EncodeOptions {
     /// Bytes the encoder may hold (its per-level working set and the tables
     /// kept for later passes) before it moves finished tables to a scratch
     /// file; `None`: no limit, everything stays in memory. The mapped 1.0
-    /// file is not counted. A budget below one level's working set spills
-    /// every table and goes on (the working set is the least it needs).
+    /// file is not counted. A budget below a pass's working set over a
+    /// level spills every table and takes that pass out of core, sized to
+    /// the budget; what such a pass still holds per item (a rank and a
+    /// reflection per 1.0 node of the level in the merge, 16 bytes per class
+    /// in the order and the layout, with the tables of the level below it
+    /// reads at random) is the least it needs, and a budget below that is
+    /// exceeded by it.
     pub memory_budget: Option<u64>,
     /// Directory of the scratch file (an unnamed temporary file); default:
     /// the system's temporary directory.
@@ -63,6 +81,78 @@ pub struct EncodeOptions {
 /// (the forms were 80 bytes); the tables by word of the level and the level
 /// below add 8 bytes a word.
 const WORK_BYTES_PER_NODE: u64 = 160;
+
+/// Bytes of the merge pass's working set per leaf: its form (16) and slot
+/// value (8), plus the ranked mask and stabiliser of its class (9) at worst.
+const WORK_BYTES_PER_LEAF: u64 = 33;
+
+/// Bytes of the order pass's working set per class of a level: its ranked
+/// key and its key as stored (72 each), its place in the stored order (8)
+/// and its first sequential child (8, twice while the chunks are joined);
+/// per class below: its stabiliser (1), its count (4, twice while counting)
+/// and its place in the order below (8, twice for a sequential child).
+const ORDER_BYTES_PER_CLASS: u64 = 168;
+const ORDER_BYTES_PER_CLASS_BELOW: u64 = 25;
+
+/// Bytes of the layout's working set per record of a node level: its key
+/// (72), first sequential child (8), place in the stored order (8), count
+/// (4), offset in its chunk (8) and address by position and by rank (8 + 8),
+/// plus twice its bytes (the chunks' pieces and the joined level; at most
+/// the bytes of its 1.0 node, 4 per word); per class below: its address by
+/// rank and by position (16).
+const LAYOUT_BYTES_PER_RECORD: u64 = 116;
+const LAYOUT_BYTES_PER_CLASS_BELOW: u64 = 16;
+
+/// Bytes of the leaves' layout per class: its place in the stored order
+/// (8), mask (8), count (4), address (8) and bytes (8, twice while they are
+/// collected).
+const LAYOUT_BYTES_PER_LEAF: u64 = 44;
+
+/// The working set of the merge pass in memory at level `level`.
+fn merge_work(dag: &Dag<'_>, level: usize) -> u64 {
+    let levels = dag.levels();
+    if level == usize::from(dag.leaf_level()) {
+        return levels[level].node_count * WORK_BYTES_PER_LEAF;
+    }
+    let below = levels.get(level + 1).map_or(0, |s| s.units());
+    levels[level].node_count * WORK_BYTES_PER_NODE + 8 * (levels[level].units() + below)
+}
+
+/// The working set of the order pass in memory at node level `level` of
+/// `classes` classes over `below` classes.
+fn order_work(classes: usize, below: usize) -> u64 {
+    classes as u64 * ORDER_BYTES_PER_CLASS + below as u64 * ORDER_BYTES_PER_CLASS_BELOW
+}
+
+/// The working set of the layout in memory at node level `level` of
+/// `classes` classes over `below` classes.
+fn layout_work(dag: &Dag<'_>, level: usize, classes: usize, below: usize) -> u64 {
+    classes as u64 * LAYOUT_BYTES_PER_RECORD
+        + 8 * dag.levels()[level].units()
+        + below as u64 * LAYOUT_BYTES_PER_CLASS_BELOW
+}
+
+/// The largest working set of a pass in memory over the levels of `dag`,
+/// with as many classes as 1.0 nodes (the most there can be). A level whose
+/// pass does not fit the budget takes that pass out of core
+/// (module `external`), within the budget; the leaves' layout and the root's
+/// merge are always in memory.
+fn working_set(dag: &Dag<'_>) -> u64 {
+    let levels = dag.levels();
+    let leaf_level = usize::from(dag.leaf_level());
+    let n = |l: usize| levels[l].node_count as usize;
+    (0..=leaf_level)
+        .map(|l| {
+            if l == leaf_level {
+                return merge_work(dag, l).max(n(l) as u64 * LAYOUT_BYTES_PER_LEAF);
+            }
+            merge_work(dag, l)
+                .max(order_work(n(l), n(l + 1)))
+                .max(layout_work(dag, l, n(l), n(l + 1)))
+        })
+        .max()
+        .unwrap_or(0)
+}
 
 /// A chunk's first-sequential-child positions and its sequential children
 /// (class rank, reflection), in the top-down pass.
@@ -81,6 +171,7 @@ pub struct EncodedLevels {
     pub levels: Vec<LevelSummary>,
     bytes: Vec<Table<u8>>,
     store: Store,
+    external_passes: usize,
 }
 
 /// What the section table says of one encoded level.
@@ -102,6 +193,12 @@ impl EncodedLevels {
     /// Bytes of the tables that went to the scratch file (0: none did).
     pub fn spilled_bytes(&self) -> u64 {
         self.store.end
+    }
+
+    /// How many passes over a level (merge, order, layout) went out of core
+    /// because their working set in memory was over the budget.
+    pub fn external_passes(&self) -> usize {
+        self.external_passes
     }
 
     /// Streams the bytes of level `level` to `sink`, in pieces.
@@ -331,6 +428,20 @@ struct Form {
     stab: u8,
 }
 
+/// The form of 1.0 node `node` whose key is `key`: the least of its
+/// reflected forms (the first reflection reaching it on ties), packed in
+/// `slot_bits` bits a slot; `stabs`: the stabiliser of the child at each
+/// slot (any value where a slot is empty).
+fn least_form(key: &NodeKey, stabs: &[u8; 8], node: u32, slot_bits: u32) -> Form {
+    let (key, reflection, stab) = least_reflected_key_in(key, stabs);
+    Form {
+        key: PackedKey::pack(&key, slot_bits),
+        node,
+        reflection,
+        stab,
+    }
+}
+
 /// A [`NodeKey`] as one 320-bit string, most significant bits first: the 8
 /// slot values in `slot_bits` bits each, then the 32 attribute bits. Fields
 /// of fixed widths, each below 2^width, so the strings (compared word by
@@ -432,18 +543,17 @@ pub fn encode_levels(
     options: &EncodeOptions,
 ) -> Result<EncodedLevels, ConvertError> {
     let depth = dag.depth() as u8;
-    let levels = dag.levels();
     let leaf_level = usize::from(dag.leaf_level());
-    // The largest per-level working set, which the budget must leave room for.
-    let work = (0..=leaf_level)
-        .map(|l| {
-            let below = levels.get(l + 1).map_or(0, |s| s.units());
-            levels[l].node_count * WORK_BYTES_PER_NODE + 8 * (levels[l].units() + below)
-        })
-        .max()
-        .unwrap_or(0);
+    // The largest per-level working set, which the budget must leave room
+    // for; a pass whose working set is over the budget goes out of core.
+    let budget = options.memory_budget;
+    let work = budget.map_or(0, |b| working_set(dag).min(b));
+    let fits = |estimate: u64| budget.is_none_or(|b| estimate <= b);
+    // What an out-of-core pass may hold: the budget less the tables held.
+    let room = |store: &Store| budget.map_or(u64::MAX, |b| b.saturating_sub(store.held));
+    let mut external_passes = 0usize;
     let mut store = Store {
-        budget: options.memory_budget.map(|b| b.saturating_sub(work)),
+        budget: budget.map(|b| b.saturating_sub(work)),
         held: 0,
         dir: options.scratch_dir.clone(),
         file: None,
@@ -470,33 +580,59 @@ pub fn encode_levels(
             levels: summaries,
             bytes,
             store,
+            external_passes: 0,
         });
     }
 
     // Pass 1: merge and rank, bottom-up.
-    let (leaves, mut child_stabs, mut slot_at) = merge_leaves(dag, leaf_level)?;
+    let (leaves, mut child_stabs, mut slots) = if fits(merge_work(dag, leaf_level)) {
+        let (leaves, stabs, slot_at) = merge_leaves(dag, leaf_level)?;
+        let slots = Slots::ByOrdinal {
+            slot_at,
+            starts: None,
+        };
+        (store.keep(leaves)?, stabs, slots)
+    } else {
+        external_passes += 1;
+        external::merge_leaves_external(dag, leaf_level, room(&store), &mut store)?
+    };
     let leaf_classes = leaves.len();
-    let leaves = store.keep(leaves)?;
     let mut stabs: Vec<Option<Table<u8>>> = (0..=leaf_level).map(|_| None).collect();
     let mut canon: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
     let mut class_counts = vec![0usize; leaf_level + 1];
     class_counts[leaf_level] = leaf_classes;
-    // The node starts of the level below (`None`: the leaves, numbered by
-    // their index already).
-    let mut child_starts: Option<RecordStarts> = None;
     for level in (0..leaf_level).rev() {
-        let (keys, level_stabs, next_slot_at, starts) =
-            merge_level(dag, level, &slot_at, child_starts.as_ref(), &child_stabs)?;
-        slot_at = next_slot_at;
-        child_starts = Some(starts);
+        // The root (one node) is stored as it is: always merged in memory.
+        let (keys, level_stabs, next_slots) = if level == 0 || fits(merge_work(dag, level)) {
+            // Below an external level, its ranks and reflections become the
+            // table by ordinal (slot value and stabiliser) read here.
+            let (slot_at, child_starts) =
+                std::mem::replace(&mut slots, Slots::none()).into_by_ordinal(&child_stabs);
+            let (keys, level_stabs, next_slot_at, starts) =
+                merge_level(dag, level, &slot_at, child_starts.as_ref(), &child_stabs)?;
+            drop(slot_at);
+            drop(child_starts);
+            (
+                store.keep(keys)?,
+                level_stabs,
+                Slots::ByOrdinal {
+                    slot_at: next_slot_at,
+                    starts: Some(starts),
+                },
+            )
+        } else {
+            external_passes += 1;
+            let room = room(&store).saturating_sub(slots.bytes() + child_stabs.len() as u64);
+            external::merge_level_external(dag, level, &slots, &child_stabs, room, &mut store)?
+        };
+        slots = next_slots;
         class_counts[level] = keys.len();
-        canon[level] = Some(store.keep(keys)?);
+        canon[level] = Some(keys);
         stabs[level + 1] = Some(store.keep(std::mem::replace(&mut child_stabs, level_stabs))?);
     }
     // The root's stabiliser is not needed: nothing refers to it.
     drop(child_stabs);
-    drop(slot_at);
-    drop(child_starts);
+    drop(slots);
 
     // Pass 2: the order of each level, top-down (§23.7).
     let mut stored: Vec<(u32, u8)> = vec![(0, 0)];
@@ -508,6 +644,23 @@ pub fn encode_levels(
     let mut kept_keys: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
     let mut kept_counts: Vec<Option<Table<u32>>> = (0..=leaf_level).map(|_| None).collect();
     for level in 0..leaf_level {
+        if !fits(order_work(class_counts[level], class_counts[level + 1])) {
+            external_passes += 1;
+            let room = room(&store);
+            let (next, firsts, as_stored, c) = external::order_level_external(
+                &mut store,
+                canon[level].take().expect("merged"),
+                stabs[level + 1].take().expect("merged"),
+                &stored,
+                class_counts[level + 1],
+                room,
+            )?;
+            kept_stored[level] = Some(store.keep(std::mem::replace(&mut stored, next))?);
+            kept_firsts[level] = Some(store.keep(firsts)?);
+            kept_keys[level] = Some(as_stored);
+            kept_counts[level + 1] = Some(store.keep(c)?);
+            continue;
+        }
         let keys = store.take(canon[level].take().expect("merged"))?;
         let child_stabs = store.take(stabs[level + 1].take().expect("merged"))?;
         let counts: Vec<AtomicU32> = (0..class_counts[level + 1])
@@ -633,6 +786,41 @@ pub fn encode_levels(
     drop(stored_leaves);
     let mut addr_of_pos: Option<Vec<u64>> = None;
     for level in (0..leaf_level).rev() {
+        let below = addr_of_rank.len();
+        if !fits(layout_work(dag, level, class_counts[level], below)) {
+            external_passes += 1;
+            let stored_here = store.take(kept_stored[level].take().expect("ordered"))?;
+            let counts_here = match kept_counts[level].take() {
+                Some(t) => store.take(t)?,
+                None => vec![1],
+            };
+            let layout = LevelLayout {
+                addr_of_rank: &addr_of_rank,
+                addr_of_pos: addr_of_pos.as_deref(),
+            };
+            // Held besides the pass's own tables: what it reads below, the
+            // stored order and the counts.
+            let held = 8 * (addr_of_rank.len() + addr_of_pos.as_ref().map_or(0, Vec::len)) as u64
+                + 12 * stored_here.len() as u64;
+            let room = room(&store).saturating_sub(held);
+            let (summary, level_bytes, next_addr_of_pos, next_addr_of_rank) =
+                external::layout_level_external(
+                    &mut store,
+                    level,
+                    kept_keys[level].take().expect("ordered"),
+                    kept_firsts[level].take().expect("ordered"),
+                    &stored_here,
+                    &counts_here,
+                    class_counts[level],
+                    &layout,
+                    room,
+                )?;
+            summaries[level] = Some(summary);
+            bytes[level] = Some(level_bytes);
+            addr_of_pos = Some(next_addr_of_pos);
+            addr_of_rank = next_addr_of_rank;
+            continue;
+        }
         let keys = store.take(kept_keys[level].take().expect("ordered"))?;
         let firsts = store.take(kept_firsts[level].take().expect("ordered"))?;
         let stored_here = store.take(kept_stored[level].take().expect("ordered"))?;
@@ -728,6 +916,7 @@ pub fn encode_levels(
             .collect(),
         bytes: bytes.into_iter().map(|b| b.expect("laid out")).collect(),
         store,
+        external_passes,
     })
 }
 
@@ -972,6 +1161,7 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
 /// small tables. The merge's tables by node are then by ordinal, 4–6 times
 /// smaller than tables by word (a record is 1 + its pointers' words), and so
 /// are the random reads and writes into them.
+#[derive(Debug)]
 struct RecordStarts {
     /// Bit `w % 64` of block `w / 64`: a record starts at word `w`.
     bits: Vec<u64>,
@@ -1089,13 +1279,7 @@ fn merge_level(
                     stab: 1,
                 });
             }
-            let (key, reflection, stab) = least_reflected_key_in(&key, &stabs);
-            Ok(Form {
-                key: PackedKey::pack(&key, slot_bits),
-                node: i as u32,
-                reflection,
-                stab,
-            })
+            Ok(least_form(&key, &stabs, i as u32, slot_bits))
         })
         .collect::<Result<_, FormatError>>()?;
     forms.par_sort_unstable_by(|a, b| a.key.cmp(&b.key));
@@ -1230,7 +1414,17 @@ mod tests {
             };
             let spilled = encode_levels(&dag, &spill_all).unwrap();
             prop_assert_eq!(spilled.spilled_bytes() > 0, !dag.is_empty());
+            // No room at all: every pass but the root's merge out of core.
+            let leaf_level = usize::from(dag.leaf_level());
+            prop_assert_eq!(
+                spilled.external_passes(),
+                if dag.is_empty() { 0 } else { (3 * leaf_level).max(1) }
+            );
             prop_assert_eq!(&spilled.into_encoded().unwrap(), &serial);
+            for pool in [&one_thread, &three_threads] {
+                let spilled = pool.install(|| encode_levels(&dag, &spill_all)).unwrap();
+                prop_assert_eq!(&spilled.into_encoded().unwrap(), &serial);
+            }
             let upgraded = crate::v2file::upgrade(&dag).unwrap();
             let mut streamed = Vec::new();
             crate::v2file::upgrade_to(&dag, &spill_all, &mut streamed).unwrap();
@@ -1265,14 +1459,7 @@ mod tests {
         .unwrap()
         .spilled_bytes();
         // The working set of the largest level, plus room for a few tables.
-        let work = (0..dag.levels().len())
-            .map(|l| {
-                let s = &dag.levels()[l];
-                let below = dag.levels().get(l + 1).map_or(0, |b| b.units());
-                s.node_count * WORK_BYTES_PER_NODE + 8 * (s.units() + below)
-            })
-            .max()
-            .unwrap();
+        let work = working_set(&dag);
         let some = encode_levels(
             &dag,
             &EncodeOptions {
@@ -1286,6 +1473,74 @@ mod tests {
             "{} of {everything}",
             some.spilled_bytes()
         );
+        assert_eq!(some.external_passes(), 0);
         assert_eq!(some.into_encoded().unwrap(), serial);
+    }
+
+    /// A DAG of `depth` from `n` random voxels, half of them in mirrored
+    /// blocks.
+    fn random_dag(depth: u8, n: usize, seed: u64) -> Vec<u8> {
+        let mut x = seed;
+        let mut next = move || {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (x >> 33) as u32
+        };
+        let voxels: Vec<(u32, u32, u32)> = (0..n).map(|_| (next(), next(), next())).collect();
+        let blocks: Vec<(u32, u32, u32)> = (0..n / 24).map(|_| (next(), next(), next())).collect();
+        let vs = scene(depth, &voxels, &blocks);
+        DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, vs)
+            .unwrap()
+            .to_bytes()
+    }
+
+    #[test]
+    fn budgets_between_the_levels_take_the_large_passes_out_of_core() {
+        for (depth, n, seed) in [(8u8, 6000, 1u64), (10, 20_000, 2), (9, 3000, 3)] {
+            let bytes = random_dag(depth, n, seed);
+            let dag = Dag::open(&bytes).unwrap();
+            let serial = crate::v2::encode_serial(&dag).unwrap();
+            let leaf_level = usize::from(dag.leaf_level());
+            let passes = 3 * leaf_level + 1;
+            // Budgets at each level's merge working set: the levels above it
+            // fit, the larger ones go out of core, within what is left.
+            let mut budgets: Vec<u64> = (0..=leaf_level).map(|l| merge_work(&dag, l)).collect();
+            budgets.sort_unstable();
+            budgets.dedup();
+            let dir = tempfile::tempdir().unwrap();
+            let one_thread = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .build()
+                .unwrap();
+            let two_threads = rayon::ThreadPoolBuilder::new()
+                .num_threads(2)
+                .build()
+                .unwrap();
+            let mut mixed = 0;
+            for &b in &budgets {
+                let options = EncodeOptions {
+                    memory_budget: Some(b),
+                    scratch_dir: Some(dir.path().to_path_buf()),
+                };
+                for pool in [&one_thread, &two_threads] {
+                    let encoded = pool.install(|| encode_levels(&dag, &options)).unwrap();
+                    let external = encoded.external_passes();
+                    assert!(external < passes, "depth {depth}, budget {b}");
+                    if external > 0 {
+                        mixed += 1;
+                    }
+                    assert!(
+                        encoded.into_encoded().unwrap() == serial,
+                        "depth {depth}, budget {b}, {external} passes out of core"
+                    );
+                }
+            }
+            assert!(
+                mixed > 0,
+                "depth {depth}: no budget took a pass out of core"
+            );
+            assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        }
     }
 }

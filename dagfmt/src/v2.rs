@@ -502,10 +502,9 @@ pub(crate) fn reflect_key_in(key: &Key, r: u8, stabs: &[u8; 8]) -> Key {
         slots: [0; 8],
         attribute: key.attribute,
     };
-    for p in 0..8usize {
-        let s = key.slots[p];
+    for (p, (&s, &stab)) in key.slots.iter().zip(stabs).enumerate() {
         if s != 0 {
-            out.slots[p ^ usize::from(r)] = reflect_slot(s, r, stabs[p]);
+            out.slots[p ^ usize::from(r)] = reflect_slot(s, r, stab);
         }
     }
     out

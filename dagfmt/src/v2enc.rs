@@ -78,8 +78,8 @@ pub struct EncodeOptions {
 /// Bytes of the merge pass's working set per 1.0 node of a level: its form
 /// (packed key, node, reflection, stabiliser: 48 bytes) and its start word
 /// (4), plus the ranked key of its class (72) at worst, with room to spare
-/// (the forms were 80 bytes); the tables by word of the level and the level
-/// below add 8 bytes a word.
+/// (the forms were 80 bytes); the tables by node of the level and the level
+/// below, and their record starts, add at most 8 bytes a word.
 const WORK_BYTES_PER_NODE: u64 = 160;
 
 /// Bytes of the merge pass's working set per leaf: its form (16) and slot
@@ -525,12 +525,12 @@ fn slot_value(rank: usize, r: u8) -> u64 {
 
 /// What the merge of a level leaves for the level above, by ordinal of each
 /// of its 1.0 nodes (by index of each leaf): the slot value naming the node
-/// in the low bits, and the stabiliser of its class in
-/// the top 8 (bits [`STAB_SHIFT`]..), so that the level above reads one
-/// table per child, not also the stabilisers by rank.
+/// in the low bits, and the stabiliser of its class in the top 8 (bits
+/// [`STAB_SHIFT`]..), so that the level above reads one table per child,
+/// not also the stabilisers by rank.
 const STAB_SHIFT: u32 = 56;
 
-/// The slot value and the class stabiliser kept at a word of `slot_at`.
+/// The slot value and the class stabiliser kept for a node in `slot_at`.
 fn slot_and_stab(rank: usize, r: u8, stab: u8) -> u64 {
     slot_value(rank, norm(r, stab)) | (u64::from(stab) << STAB_SHIFT)
 }
@@ -693,12 +693,12 @@ pub fn encode_levels(
                     prefetch(&key.slots[0]);
                     prefetch(&key.attribute);
                 }
-                if let Some(&(ahead, r)) = stored.get(i + AHEAD) {
-                    if r != 0 {
-                        for &s in &keys[ahead as usize].slots {
-                            if s != 0 {
-                                prefetch(&child_stabs[((s - 1) >> 3) as usize]);
-                            }
+                if let Some(&(ahead, r)) = stored.get(i + AHEAD)
+                    && r != 0
+                {
+                    for &s in &keys[ahead as usize].slots {
+                        if s != 0 {
+                            prefetch(&child_stabs[((s - 1) >> 3) as usize]);
                         }
                     }
                 }
@@ -1095,9 +1095,8 @@ fn merge_leaves(
 /// from its first form, in rank order, and calls `assign` with each form,
 /// the rank of its class and the class's parts (and `ahead` with the form
 /// [`AHEAD`] places later, to prefetch what `assign` will write). In
-/// parallel chunks (the
-/// ranks at each chunk's start counted first); the result does not depend
-/// on the chunks.
+/// parallel chunks (the ranks at each chunk's start counted first); the
+/// result does not depend on the chunks.
 fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
     forms: &[F],
     same: impl Fn(&F, &F) -> bool + Sync,

@@ -433,35 +433,90 @@ pub fn child_address(
 type Key = NodeKey;
 
 /// The least reflection in the coset `t ^ stab` (`stab` a bit set of reflections).
+#[inline]
 pub(crate) fn norm(t: u8, stab: u8) -> u8 {
     // Most classes have no symmetry: only the identity leaves them unchanged.
-    if stab == 1 {
+    if stab == 1 || stab == 0 {
         return t;
     }
-    (0..8u8)
-        .filter(|s| stab >> s & 1 != 0)
-        .map(|s| t ^ s)
-        .min()
-        .unwrap_or(t)
+    match NORM[usize::from(stab)].get(usize::from(t)) {
+        Some(&least) => least,
+        // Not a reflection (t < 8 everywhere in the encoder): as defined.
+        None => (0..8u8)
+            .filter(|s| stab >> s & 1 != 0)
+            .map(|s| t ^ s)
+            .min()
+            .unwrap_or(t),
+    }
+}
+
+/// [`norm`] of every non-empty stabiliser (a bit set of reflections) and
+/// reflection: one load instead of a loop over the set, in the encoder's
+/// inner loops.
+static NORM: [[u8; 8]; 256] = norm_table();
+
+const fn norm_table() -> [[u8; 8]; 256] {
+    let mut table = [[0u8; 8]; 256];
+    let mut stab = 0usize;
+    while stab < 256 {
+        let mut t = 0u8;
+        while t < 8 {
+            let mut least = u8::MAX;
+            let mut s = 0u8;
+            while s < 8 {
+                if stab >> s & 1 != 0 && t ^ s < least {
+                    least = t ^ s;
+                }
+                s += 1;
+            }
+            table[stab][t as usize] = least;
+            t += 1;
+        }
+        stab += 1;
+    }
+    table
 }
 
 /// Reflects a key by `r`: slot p moves to p ^ r, each reference's reflection
 /// is XORed with r and normalised in its child's stabiliser.
 pub(crate) fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
+    reflect_key_in(key, r, &slot_stabs(key, child_stab))
+}
+
+/// The stabiliser of the child at each slot of `key` (1 where none is):
+/// `child_stab` are the stabilisers of the classes below, by rank.
+fn slot_stabs(key: &Key, child_stab: &[u8]) -> [u8; 8] {
+    key.slots.map(|s| {
+        if s == 0 {
+            1
+        } else {
+            child_stab[((s - 1) >> 3) as usize]
+        }
+    })
+}
+
+/// [`reflect_key`] with the stabiliser of the child at each slot of `key`
+/// given (`stabs`), so that no table of the level below is read again.
+pub(crate) fn reflect_key_in(key: &Key, r: u8, stabs: &[u8; 8]) -> Key {
     let mut out = Key {
         slots: [0; 8],
         attribute: key.attribute,
     };
-    for p in 0..8usize {
-        let s = key.slots[p];
+    for (p, (&s, &stab)) in key.slots.iter().zip(stabs).enumerate() {
         if s != 0 {
-            let rank = (s - 1) >> 3;
-            let t = ((s - 1) & 7) as u8;
-            let t = norm(t ^ r, child_stab[rank as usize]);
-            out.slots[p ^ usize::from(r)] = 1 + (rank << 3) + u64::from(t);
+            out.slots[p ^ usize::from(r)] = reflect_slot(s, r, stab);
         }
     }
     out
+}
+
+/// Slot value `s` (§23.6, not 0) reflected by `r` and normalised in its
+/// child's stabiliser `stab`.
+#[inline]
+fn reflect_slot(s: u64, r: u8, stab: u8) -> u64 {
+    let t = norm(((s - 1) & 7) as u8 ^ r, stab);
+    // The rank's bits are kept; only the low 3 (the reflection) change.
+    ((s - 1) & !7) + 1 + u64::from(t)
 }
 
 /// The least of the 8 reflected forms of `key` (§23.6), with the first
@@ -471,15 +526,20 @@ pub(crate) fn reflect_key(key: &Key, r: u8, child_stab: &[u8]) -> Key {
 /// by rank. The encoder ([`crate::v2enc`]) and the validator's canonical
 /// check ([`crate::canonical2`]) both rank nodes by it.
 pub(crate) fn least_reflected_key(key: &Key, child_stab: &[u8]) -> (Key, u8, u8) {
+    least_reflected_key_in(key, &slot_stabs(key, child_stab))
+}
+
+/// [`least_reflected_key`] with the stabiliser of the child at each slot of
+/// `key` given (`stabs`; any value where a slot is empty).
+pub(crate) fn least_reflected_key_in(key: &Key, stabs: &[u8; 8]) -> (Key, u8, u8) {
     // Slot j of form r holds the child at slot j ^ r.
     let (best, ties) = least_form(8, |r, j| {
-        let s = key.slots[usize::from(j ^ r)];
+        let p = usize::from(j ^ r);
+        let s = key.slots[p];
         if s == 0 {
             return 0;
         }
-        let rank = (s - 1) >> 3;
-        let t = norm(((s - 1) & 7) as u8 ^ r, child_stab[rank as usize]);
-        1 + (rank << 3) + u64::from(t)
+        reflect_slot(s, r, stabs[p])
     });
     let mut group = 0u8;
     for r in 0..8u8 {
@@ -487,7 +547,7 @@ pub(crate) fn least_reflected_key(key: &Key, child_stab: &[u8]) -> (Key, u8, u8)
             group |= 1 << (r ^ best);
         }
     }
-    (reflect_key(key, best, child_stab), best, group)
+    (reflect_key_in(key, best, stabs), best, group)
 }
 
 /// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), in
@@ -1248,6 +1308,20 @@ mod tests {
         }
     }
 
+    #[test]
+    fn the_norm_table_is_the_least_of_the_coset() {
+        for stab in 0..=255u8 {
+            for t in 0..16u8 {
+                let least = (0..8u8)
+                    .filter(|s| stab >> s & 1 != 0)
+                    .map(|s| t ^ s)
+                    .min()
+                    .unwrap_or(t);
+                let expected = if stab == 1 { t } else { least };
+                assert_eq!(norm(t, stab), expected, "t {t}, stabiliser {stab:#010b}");
+            }
+        }
+    }
     #[test]
     fn widths_minimise_the_reference_bits() {
         let mut hist = [0u64; 65];

@@ -27,6 +27,16 @@
 //! tables are, never what they hold, so the output does not depend on the
 //! budget (nor on the number of threads: every parallel step is a map whose
 //! results are joined in order, or a sort of distinct keys).
+//!
+//! Each pass over a level holds a working set that grows with the level
+//! (`merge_work`, `order_work`, `layout_work`: 160 bytes per 1.0 node and 8
+//! per word in the merge, about 170 per class in the order pass, 116 per
+//! record and twice its bytes in the layout). A pass whose working set is
+//! over the budget goes out of core instead (module `external`: the merge as an
+//! external sort of the level's forms in runs, the order and the layout a
+//! chunk at a time), within the budget; it makes the same tables, so the
+//! bytes are again the same. The leaves' layout (44 bytes per leaf class)
+//! and the root's merge are always in memory.
 
 use std::fs::File;
 use std::io::{self, Read, Seek, SeekFrom, Write};
@@ -38,8 +48,13 @@ use rayon::prelude::*;
 use crate::error::{ErrorCode, FormatError};
 use crate::reader::Dag;
 use crate::symmetry::{NodeKey, reflect_leaf};
-use crate::v2::{BitWriter, Encoded, EncodedLevel, best_widths, norm, reflect_key};
+use crate::v2::{
+    BitWriter, Encoded, EncodedLevel, best_widths, least_reflected_key_in, norm, reflect_key,
+};
 use crate::v2file::ConvertError;
+
+mod external;
+use external::Slots;
 
 /// How [`encode_levels`] may use memory.
 #[derive(Clone, Debug, Default)]
@@ -47,8 +62,13 @@ pub struct EncodeOptions {
     /// Bytes the encoder may hold (its per-level working set and the tables
     /// kept for later passes) before it moves finished tables to a scratch
     /// file; `None`: no limit, everything stays in memory. The mapped 1.0
-    /// file is not counted. A budget below one level's working set spills
-    /// every table and goes on (the working set is the least it needs).
+    /// file is not counted. A budget below a pass's working set over a
+    /// level spills every table and takes that pass out of core, sized to
+    /// the budget; what such a pass still holds per item (a rank and a
+    /// reflection per 1.0 node of the level in the merge, 16 bytes per class
+    /// in the order and the layout, with the tables of the level below it
+    /// reads at random) is the least it needs, and a budget below that is
+    /// exceeded by it.
     pub memory_budget: Option<u64>,
     /// Directory of the scratch file (an unnamed temporary file); default:
     /// the system's temporary directory.
@@ -56,10 +76,83 @@ pub struct EncodeOptions {
 }
 
 /// Bytes of the merge pass's working set per 1.0 node of a level: its form
-/// (key, node, reflection, stabiliser: 80 bytes) and its start word (4),
-/// plus the ranked key of its class (72) at worst; the tables by word of the
-/// level and the level below add 8 bytes a word.
+/// (packed key, node, reflection, stabiliser: 48 bytes) and its start word
+/// (4), plus the ranked key of its class (72) at worst, with room to spare
+/// (the forms were 80 bytes); the tables by node of the level and the level
+/// below, and their record starts, add at most 8 bytes a word.
 const WORK_BYTES_PER_NODE: u64 = 160;
+
+/// Bytes of the merge pass's working set per leaf: its form (16) and slot
+/// value (8), plus the ranked mask and stabiliser of its class (9) at worst.
+const WORK_BYTES_PER_LEAF: u64 = 33;
+
+/// Bytes of the order pass's working set per class of a level: its ranked
+/// key and its key as stored (72 each), its place in the stored order (8)
+/// and its first sequential child (8, twice while the chunks are joined);
+/// per class below: its stabiliser (1), its count (4, twice while counting)
+/// and its place in the order below (8, twice for a sequential child).
+const ORDER_BYTES_PER_CLASS: u64 = 168;
+const ORDER_BYTES_PER_CLASS_BELOW: u64 = 25;
+
+/// Bytes of the layout's working set per record of a node level: its key
+/// (72), first sequential child (8), place in the stored order (8), count
+/// (4), offset in its chunk (8) and address by position and by rank (8 + 8),
+/// plus twice its bytes (the chunks' pieces and the joined level; at most
+/// the bytes of its 1.0 node, 4 per word); per class below: its address by
+/// rank and by position (16).
+const LAYOUT_BYTES_PER_RECORD: u64 = 116;
+const LAYOUT_BYTES_PER_CLASS_BELOW: u64 = 16;
+
+/// Bytes of the leaves' layout per class: its place in the stored order
+/// (8), mask (8), count (4), address (8) and bytes (8, twice while they are
+/// collected).
+const LAYOUT_BYTES_PER_LEAF: u64 = 44;
+
+/// The working set of the merge pass in memory at level `level`.
+fn merge_work(dag: &Dag<'_>, level: usize) -> u64 {
+    let levels = dag.levels();
+    if level == usize::from(dag.leaf_level()) {
+        return levels[level].node_count * WORK_BYTES_PER_LEAF;
+    }
+    let below = levels.get(level + 1).map_or(0, |s| s.units());
+    levels[level].node_count * WORK_BYTES_PER_NODE + 8 * (levels[level].units() + below)
+}
+
+/// The working set of the order pass in memory at node level `level` of
+/// `classes` classes over `below` classes.
+fn order_work(classes: usize, below: usize) -> u64 {
+    classes as u64 * ORDER_BYTES_PER_CLASS + below as u64 * ORDER_BYTES_PER_CLASS_BELOW
+}
+
+/// The working set of the layout in memory at node level `level` of
+/// `classes` classes over `below` classes.
+fn layout_work(dag: &Dag<'_>, level: usize, classes: usize, below: usize) -> u64 {
+    classes as u64 * LAYOUT_BYTES_PER_RECORD
+        + 8 * dag.levels()[level].units()
+        + below as u64 * LAYOUT_BYTES_PER_CLASS_BELOW
+}
+
+/// The largest working set of a pass in memory over the levels of `dag`,
+/// with as many classes as 1.0 nodes (the most there can be). A level whose
+/// pass does not fit the budget takes that pass out of core
+/// (module `external`), within the budget; the leaves' layout and the root's
+/// merge are always in memory.
+fn working_set(dag: &Dag<'_>) -> u64 {
+    let levels = dag.levels();
+    let leaf_level = usize::from(dag.leaf_level());
+    let n = |l: usize| levels[l].node_count as usize;
+    (0..=leaf_level)
+        .map(|l| {
+            if l == leaf_level {
+                return merge_work(dag, l).max(n(l) as u64 * LAYOUT_BYTES_PER_LEAF);
+            }
+            merge_work(dag, l)
+                .max(order_work(n(l), n(l + 1)))
+                .max(layout_work(dag, l, n(l), n(l + 1)))
+        })
+        .max()
+        .unwrap_or(0)
+}
 
 /// A chunk's first-sequential-child positions and its sequential children
 /// (class rank, reflection), in the top-down pass.
@@ -78,6 +171,7 @@ pub struct EncodedLevels {
     pub levels: Vec<LevelSummary>,
     bytes: Vec<Table<u8>>,
     store: Store,
+    external_passes: usize,
 }
 
 /// What the section table says of one encoded level.
@@ -99,6 +193,12 @@ impl EncodedLevels {
     /// Bytes of the tables that went to the scratch file (0: none did).
     pub fn spilled_bytes(&self) -> u64 {
         self.store.end
+    }
+
+    /// How many passes over a level (merge, order, layout) went out of core
+    /// because their working set in memory was over the budget.
+    pub fn external_passes(&self) -> usize {
+        self.external_passes
     }
 
     /// Streams the bytes of level `level` to `sink`, in pieces.
@@ -317,7 +417,8 @@ impl Store {
 /// A 1.0 node in intrinsic terms, least of its reflected forms.
 #[derive(Clone, Copy, Debug)]
 struct Form {
-    key: NodeKey,
+    /// The least form, packed so that it sorts as the [`NodeKey`] does.
+    key: PackedKey,
     /// Ordinal of the 1.0 node in its level.
     node: u32,
     /// The reflection from the node to its least form (the same one turns
@@ -325,6 +426,89 @@ struct Form {
     reflection: u8,
     /// The stabiliser of the least form, as a bit set of reflections.
     stab: u8,
+}
+
+/// The form of 1.0 node `node` whose key is `key`: the least of its
+/// reflected forms (the first reflection reaching it on ties), packed in
+/// `slot_bits` bits a slot; `stabs`: the stabiliser of the child at each
+/// slot (any value where a slot is empty).
+fn least_form(key: &NodeKey, stabs: &[u8; 8], node: u32, slot_bits: u32) -> Form {
+    let (key, reflection, stab) = least_reflected_key_in(key, stabs);
+    Form {
+        key: PackedKey::pack(&key, slot_bits),
+        node,
+        reflection,
+        stab,
+    }
+}
+
+/// A [`NodeKey`] as one 320-bit string, most significant bits first: the 8
+/// slot values in `slot_bits` bits each, then the 32 attribute bits. Fields
+/// of fixed widths, each below 2^width, so the strings (compared word by
+/// word) are in the order of the keys, and equal exactly when the keys are:
+/// the level's sort compares and moves 40 bytes, not 68 compared field by
+/// field. A slot value is at most 2^35 (ranks are below 2^32), so 36 bits
+/// always do and 8 · 36 + 32 = 320.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+struct PackedKey([u64; 5]);
+
+impl PackedKey {
+    /// Bits per slot for a level whose classes below number `classes_below`:
+    /// the largest slot value is `8 · classes_below` (§23.6).
+    fn slot_bits(classes_below: usize) -> u32 {
+        bits_of(8 * classes_below as u64)
+    }
+
+    fn pack(key: &NodeKey, slot_bits: u32) -> PackedKey {
+        let mut words = [0u64; 5];
+        let mut at = 0u32;
+        for &s in &key.slots {
+            debug_assert!(bits_of(s) <= slot_bits);
+            put_bits(&mut words, at, s, slot_bits);
+            at += slot_bits;
+        }
+        put_bits(&mut words, at, u64::from(key.attribute), 32);
+        PackedKey(words)
+    }
+
+    fn unpack(&self, slot_bits: u32) -> NodeKey {
+        let mut key = NodeKey {
+            slots: [0; 8],
+            attribute: 0,
+        };
+        let mut at = 0u32;
+        for s in &mut key.slots {
+            *s = get_bits(&self.0, at, slot_bits);
+            at += slot_bits;
+        }
+        key.attribute = get_bits(&self.0, at, 32) as u32;
+        key
+    }
+}
+
+/// ORs `value` (below 2^`bits`, `bits` 1..=64) into `words` at bit `at`,
+/// counted from the most significant bit of `words[0]`.
+fn put_bits(words: &mut [u64; 5], at: u32, value: u64, bits: u32) {
+    let (i, off) = ((at / 64) as usize, at % 64);
+    let end = off + bits;
+    if end <= 64 {
+        words[i] |= value << (64 - end);
+    } else {
+        words[i] |= value >> (end - 64);
+        words[i + 1] |= value << (128 - end);
+    }
+}
+
+/// The `bits` bits (1..=64) of `words` at bit `at`, as [`put_bits`] put them.
+fn get_bits(words: &[u64; 5], at: u32, bits: u32) -> u64 {
+    let (i, off) = ((at / 64) as usize, at % 64);
+    let end = off + bits;
+    let mask = u64::MAX >> (64 - bits);
+    if end <= 64 {
+        (words[i] >> (64 - end)) & mask
+    } else {
+        ((words[i] << (end - 64)) | (words[i + 1] >> (128 - end))) & mask
+    }
 }
 
 /// The stabiliser of a leaf mask: the reflections that leave it unchanged.
@@ -339,6 +523,18 @@ fn slot_value(rank: usize, r: u8) -> u64 {
     1 + ((rank as u64) << 3) + u64::from(r)
 }
 
+/// What the merge of a level leaves for the level above, by ordinal of each
+/// of its 1.0 nodes (by index of each leaf): the slot value naming the node
+/// in the low bits, and the stabiliser of its class in the top 8 (bits
+/// [`STAB_SHIFT`]..), so that the level above reads one table per child,
+/// not also the stabilisers by rank.
+const STAB_SHIFT: u32 = 56;
+
+/// The slot value and the class stabiliser kept for a node in `slot_at`.
+fn slot_and_stab(rank: usize, r: u8, stab: u8) -> u64 {
+    slot_value(rank, norm(r, stab)) | (u64::from(stab) << STAB_SHIFT)
+}
+
 /// Encodes the level sections of the 2.0 file of `dag`'s voxels (§23), the
 /// bytes of [`crate::v2::encode_serial`], on the threads of the current
 /// rayon pool and within `options`' memory budget.
@@ -347,18 +543,17 @@ pub fn encode_levels(
     options: &EncodeOptions,
 ) -> Result<EncodedLevels, ConvertError> {
     let depth = dag.depth() as u8;
-    let levels = dag.levels();
     let leaf_level = usize::from(dag.leaf_level());
-    // The largest per-level working set, which the budget must leave room for.
-    let work = (0..=leaf_level)
-        .map(|l| {
-            let below = levels.get(l + 1).map_or(0, |s| s.units());
-            levels[l].node_count * WORK_BYTES_PER_NODE + 8 * (levels[l].units() + below)
-        })
-        .max()
-        .unwrap_or(0);
+    // The largest per-level working set, which the budget must leave room
+    // for; a pass whose working set is over the budget goes out of core.
+    let budget = options.memory_budget;
+    let work = budget.map_or(0, |b| working_set(dag).min(b));
+    let fits = |estimate: u64| budget.is_none_or(|b| estimate <= b);
+    // What an out-of-core pass may hold: the budget less the tables held.
+    let room = |store: &Store| budget.map_or(u64::MAX, |b| b.saturating_sub(store.held));
+    let mut external_passes = 0usize;
     let mut store = Store {
-        budget: options.memory_budget.map(|b| b.saturating_sub(work)),
+        budget: budget.map(|b| b.saturating_sub(work)),
         held: 0,
         dir: options.scratch_dir.clone(),
         file: None,
@@ -385,27 +580,59 @@ pub fn encode_levels(
             levels: summaries,
             bytes,
             store,
+            external_passes: 0,
         });
     }
 
     // Pass 1: merge and rank, bottom-up.
-    let (leaves, mut child_stabs, mut slot_at) = merge_leaves(dag, leaf_level)?;
+    let (leaves, mut child_stabs, mut slots) = if fits(merge_work(dag, leaf_level)) {
+        let (leaves, stabs, slot_at) = merge_leaves(dag, leaf_level)?;
+        let slots = Slots::ByOrdinal {
+            slot_at,
+            starts: None,
+        };
+        (store.keep(leaves)?, stabs, slots)
+    } else {
+        external_passes += 1;
+        external::merge_leaves_external(dag, leaf_level, room(&store), &mut store)?
+    };
     let leaf_classes = leaves.len();
-    let leaves = store.keep(leaves)?;
     let mut stabs: Vec<Option<Table<u8>>> = (0..=leaf_level).map(|_| None).collect();
     let mut canon: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
     let mut class_counts = vec![0usize; leaf_level + 1];
     class_counts[leaf_level] = leaf_classes;
     for level in (0..leaf_level).rev() {
-        let (keys, level_stabs, next_slot_at) = merge_level(dag, level, &slot_at, &child_stabs)?;
-        slot_at = next_slot_at;
+        // The root (one node) is stored as it is: always merged in memory.
+        let (keys, level_stabs, next_slots) = if level == 0 || fits(merge_work(dag, level)) {
+            // Below an external level, its ranks and reflections become the
+            // table by ordinal (slot value and stabiliser) read here.
+            let (slot_at, child_starts) =
+                std::mem::replace(&mut slots, Slots::none()).into_by_ordinal(&child_stabs);
+            let (keys, level_stabs, next_slot_at, starts) =
+                merge_level(dag, level, &slot_at, child_starts.as_ref(), &child_stabs)?;
+            drop(slot_at);
+            drop(child_starts);
+            (
+                store.keep(keys)?,
+                level_stabs,
+                Slots::ByOrdinal {
+                    slot_at: next_slot_at,
+                    starts: Some(starts),
+                },
+            )
+        } else {
+            external_passes += 1;
+            let room = room(&store).saturating_sub(slots.bytes() + child_stabs.len() as u64);
+            external::merge_level_external(dag, level, &slots, &child_stabs, room, &mut store)?
+        };
+        slots = next_slots;
         class_counts[level] = keys.len();
-        canon[level] = Some(store.keep(keys)?);
+        canon[level] = Some(keys);
         stabs[level + 1] = Some(store.keep(std::mem::replace(&mut child_stabs, level_stabs))?);
     }
     // The root's stabiliser is not needed: nothing refers to it.
     drop(child_stabs);
-    drop(slot_at);
+    drop(slots);
 
     // Pass 2: the order of each level, top-down (§23.7).
     let mut stored: Vec<(u32, u8)> = vec![(0, 0)];
@@ -417,6 +644,23 @@ pub fn encode_levels(
     let mut kept_keys: Vec<Option<Table<NodeKey>>> = (0..leaf_level).map(|_| None).collect();
     let mut kept_counts: Vec<Option<Table<u32>>> = (0..=leaf_level).map(|_| None).collect();
     for level in 0..leaf_level {
+        if !fits(order_work(class_counts[level], class_counts[level + 1])) {
+            external_passes += 1;
+            let room = room(&store);
+            let (next, firsts, as_stored, c) = external::order_level_external(
+                &mut store,
+                canon[level].take().expect("merged"),
+                stabs[level + 1].take().expect("merged"),
+                &stored,
+                class_counts[level + 1],
+                room,
+            )?;
+            kept_stored[level] = Some(store.keep(std::mem::replace(&mut stored, next))?);
+            kept_firsts[level] = Some(store.keep(firsts)?);
+            kept_keys[level] = Some(as_stored);
+            kept_counts[level + 1] = Some(store.keep(c)?);
+            continue;
+        }
         let keys = store.take(canon[level].take().expect("merged"))?;
         let child_stabs = store.take(stabs[level + 1].take().expect("merged"))?;
         let counts: Vec<AtomicU32> = (0..class_counts[level + 1])
@@ -440,7 +684,24 @@ pub fn encode_levels(
         // and most sequential ones, are stored without a reflection.
         let as_stored: Vec<NodeKey> = stored
             .par_iter()
-            .map(|&(rank, applied)| {
+            .enumerate()
+            .map(|(i, &(rank, applied))| {
+                // Two steps ahead: the key (72 bytes, two lines), then, once
+                // it is near, the stabilisers a reflection of it reads.
+                if let Some(&(ahead, _)) = stored.get(i + 2 * AHEAD) {
+                    let key = &keys[ahead as usize];
+                    prefetch(&key.slots[0]);
+                    prefetch(&key.attribute);
+                }
+                if let Some(&(ahead, r)) = stored.get(i + AHEAD)
+                    && r != 0
+                {
+                    for &s in &keys[ahead as usize].slots {
+                        if s != 0 {
+                            prefetch(&child_stabs[((s - 1) >> 3) as usize]);
+                        }
+                    }
+                }
                 let key = &keys[rank as usize];
                 if applied == 0 {
                     *key
@@ -525,6 +786,41 @@ pub fn encode_levels(
     drop(stored_leaves);
     let mut addr_of_pos: Option<Vec<u64>> = None;
     for level in (0..leaf_level).rev() {
+        let below = addr_of_rank.len();
+        if !fits(layout_work(dag, level, class_counts[level], below)) {
+            external_passes += 1;
+            let stored_here = store.take(kept_stored[level].take().expect("ordered"))?;
+            let counts_here = match kept_counts[level].take() {
+                Some(t) => store.take(t)?,
+                None => vec![1],
+            };
+            let layout = LevelLayout {
+                addr_of_rank: &addr_of_rank,
+                addr_of_pos: addr_of_pos.as_deref(),
+            };
+            // Held besides the pass's own tables: what it reads below, the
+            // stored order and the counts.
+            let held = 8 * (addr_of_rank.len() + addr_of_pos.as_ref().map_or(0, Vec::len)) as u64
+                + 12 * stored_here.len() as u64;
+            let room = room(&store).saturating_sub(held);
+            let (summary, level_bytes, next_addr_of_pos, next_addr_of_rank) =
+                external::layout_level_external(
+                    &mut store,
+                    level,
+                    kept_keys[level].take().expect("ordered"),
+                    kept_firsts[level].take().expect("ordered"),
+                    &stored_here,
+                    &counts_here,
+                    class_counts[level],
+                    &layout,
+                    room,
+                )?;
+            summaries[level] = Some(summary);
+            bytes[level] = Some(level_bytes);
+            addr_of_pos = Some(next_addr_of_pos);
+            addr_of_rank = next_addr_of_rank;
+            continue;
+        }
         let keys = store.take(kept_keys[level].take().expect("ordered"))?;
         let firsts = store.take(kept_firsts[level].take().expect("ordered"))?;
         let stored_here = store.take(kept_stored[level].take().expect("ordered"))?;
@@ -541,7 +837,10 @@ pub fn encode_levels(
             .zip(firsts.par_chunks(LAYOUT_CHUNK))
             .map(|(keys, firsts)| {
                 let mut hist = [0u64; 65];
-                for (key, &first) in keys.iter().zip(firsts) {
+                for (i, (key, &first)) in keys.iter().zip(firsts).enumerate() {
+                    if let Some(ahead) = keys.get(i + AHEAD) {
+                        layout.prefetch(ahead);
+                    }
                     layout.record(key, first, |v| hist[bits_of(v) as usize] += 1);
                 }
                 hist
@@ -572,7 +871,10 @@ pub fn encode_levels(
             .map(|(keys, firsts)| {
                 let mut out = Vec::new();
                 let mut offsets = Vec::with_capacity(keys.len());
-                for (key, &first) in keys.iter().zip(firsts) {
+                for (i, (key, &first)) in keys.iter().zip(firsts).enumerate() {
+                    if let Some(ahead) = keys.get(i + AHEAD) {
+                        layout.prefetch(ahead);
+                    }
                     offsets.push(out.len() as u64);
                     layout.write(key, first, widths, &mut out);
                 }
@@ -614,12 +916,34 @@ pub fn encode_levels(
             .collect(),
         bytes: bytes.into_iter().map(|b| b.expect("laid out")).collect(),
         store,
+        external_passes,
     })
 }
 
 /// The bits a reference value needs (at least 1).
 fn bits_of(v: u64) -> u32 {
     (64 - v.leading_zeros()).max(1)
+}
+
+/// How many items ahead the gathers and scatters into tables in random
+/// order (by rank, by ordinal) ask for their cache line: the encoder's
+/// time goes mostly to these misses, and they are independent, so asking
+/// early overlaps them.
+const AHEAD: usize = 16;
+
+/// Asks the cache for the line of `item` (a hint: it changes no result).
+#[inline(always)]
+fn prefetch<T>(item: &T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch reads nothing into the program and cannot fault;
+    // the pointer comes from a reference anyway.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+            (item as *const T).cast::<i8>(),
+        );
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = item;
 }
 
 /// The address of a class below in [`LevelLayout::addr_of_rank`] that is
@@ -638,6 +962,16 @@ struct LevelLayout<'a> {
 }
 
 impl LevelLayout<'_> {
+    /// Asks the cache for what [`LevelLayout::record`] of `key` will read.
+    #[inline]
+    fn prefetch(&self, key: &NodeKey) {
+        for &s in &key.slots {
+            if s != 0 {
+                prefetch(&self.addr_of_rank[((s - 1) >> 3) as usize]);
+            }
+        }
+    }
+
     /// Calls `reference` with each shared child's reference value in
     /// physical slot order, then with the base reference, if any, of the
     /// record of `key` whose first sequential child is at position `first`.
@@ -749,8 +1083,9 @@ fn merge_leaves(
         |a, b| a.0 == b.0,
         |f| (f.0, leaf_stab(f.0)),
         |&(_, i, r), rank, &(_, stab)| {
-            slot_at[i as usize].store(slot_value(rank, norm(r, stab)), Ordering::Relaxed);
+            slot_at[i as usize].store(slot_and_stab(rank, r, stab), Ordering::Relaxed);
         },
+        |&(_, i, _)| prefetch(&slot_at[i as usize]),
     );
     Ok((leaves, stabs, slot_at))
 }
@@ -758,14 +1093,16 @@ fn merge_leaves(
 /// Numbers the classes of `forms`, sorted so that equal forms (`same`) are
 /// adjacent, by their order: returns each class's two parts made by `class`
 /// from its first form, in rank order, and calls `assign` with each form,
-/// the rank of its class and the class's parts. In parallel chunks (the
-/// ranks at each chunk's start counted first); the result does not depend
-/// on the chunks.
+/// the rank of its class and the class's parts (and `ahead` with the form
+/// [`AHEAD`] places later, to prefetch what `assign` will write). In
+/// parallel chunks (the ranks at each chunk's start counted first); the
+/// result does not depend on the chunks.
 fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
     forms: &[F],
     same: impl Fn(&F, &F) -> bool + Sync,
     class: impl Fn(&F) -> (A, B) + Sync,
     assign: impl Fn(&F, usize, &(A, B)) + Sync,
+    ahead: impl Fn(&F) + Sync,
 ) -> (Vec<A>, Vec<B>) {
     let starts_class = |i: usize| i == 0 || !same(&forms[i - 1], &forms[i]);
     let new_classes: Vec<usize> = forms
@@ -793,6 +1130,9 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
             let mut rank = first_rank[ci].wrapping_sub(1);
             let mut current = (ci > 0).then(|| class(&forms[ci * LAYOUT_CHUNK - 1]));
             for (j, f) in chunk.iter().enumerate() {
+                if let Some(later) = chunk.get(j + AHEAD) {
+                    ahead(later);
+                }
                 if starts_class(ci * LAYOUT_CHUNK + j) {
                     rank = rank.wrapping_add(1);
                     let parts = class(f);
@@ -814,45 +1154,109 @@ fn rank_sorted<F: Sync, A: Send + Sync + Copy, B: Send + Sync + Copy>(
     (a, b)
 }
 
+/// Where the records of a 1.0 node level start: a bit per word, set at each
+/// record's first word, and the starts before each block of 64 words, so
+/// that a pointer (a word) becomes the ordinal of its node with two reads of
+/// small tables. The merge's tables by node are then by ordinal, 4–6 times
+/// smaller than tables by word (a record is 1 + its pointers' words), and so
+/// are the random reads and writes into them.
+#[derive(Debug)]
+struct RecordStarts {
+    /// Bit `w % 64` of block `w / 64`: a record starts at word `w`.
+    bits: Vec<u64>,
+    /// Records starting before each block.
+    before: Vec<u32>,
+}
+
+impl RecordStarts {
+    /// The ordinal of the record starting at word `w`, if one does.
+    #[inline]
+    fn ordinal(&self, w: u32) -> Option<usize> {
+        let (block, bit) = ((w / 64) as usize, w % 64);
+        let bits = *self.bits.get(block)?;
+        (bits >> bit & 1 != 0).then(|| {
+            self.before[block] as usize + (bits & ((1u64 << bit) - 1)).count_ones() as usize
+        })
+    }
+}
+
 /// Interior level `level`, merged and ranked through `slot_at` (the slot
-/// value of each 1.0 node of the level below by its word, or of each leaf by
-/// its index; 0 where none starts) and the stabilisers of the classes
-/// below (`child_stabs`, by rank): the ranked keys, their stabilisers, and
-/// the slot value of each 1.0 node of this level by its word.
+/// value and class stabiliser of each node of the level below by ordinal,
+/// its record found through `child_starts`, or of each leaf by its index
+/// when `child_starts` is `None`) and the stabilisers of the classes below
+/// (`child_stabs`, by rank): the ranked keys, their stabilisers, the slot
+/// value and stabiliser of each 1.0 node of this level by ordinal, and
+/// where its records start.
 #[allow(clippy::type_complexity)]
 fn merge_level(
     dag: &Dag<'_>,
     level: usize,
     slot_at: &[AtomicU64],
+    child_starts: Option<&RecordStarts>,
     child_stabs: &[u8],
-) -> Result<(Vec<NodeKey>, Vec<u8>, Vec<AtomicU64>), FormatError> {
+) -> Result<(Vec<NodeKey>, Vec<u8>, Vec<AtomicU64>, RecordStarts), FormatError> {
     let section = &dag.levels()[level];
     let units = section.units();
     let level8 = level as u8;
-    // The node starts: each record's size is in its header.
+    // The node starts: each record's size is in its header's child mask (a
+    // table of the sizes by mask, in words, for this serial walk).
+    let words_of: [u64; 256] = std::array::from_fn(|mask| {
+        crate::layout::node_record_size((mask as u8).count_ones(), section.pointer_width) / 4
+    });
     let mut starts: Vec<u32> = Vec::with_capacity(section.node_count as usize);
+    let mut bits = vec![0u64; units.div_ceil(64) as usize];
     let mut word = 0u64;
     while word < units {
         let w = u32::try_from(word).expect("a 1.0 level has fewer than 2^32 words");
         starts.push(w);
-        word += dag.node(level8, w)?.record_size() / 4;
+        bits[(w / 64) as usize] |= 1 << (w % 64);
+        word += words_of[usize::from(section.bytes[4 * w as usize])];
     }
+    if word > units {
+        // The last record runs past the level: the reader says how.
+        dag.node(level8, *starts.last().expect("a record started"))?;
+    }
+    let mut before = Vec::with_capacity(bits.len());
+    let mut count = 0u32;
+    for b in &bits {
+        before.push(count);
+        count += b.count_ones();
+    }
+    let record_starts = RecordStarts { bits, before };
+    let slot_bits = PackedKey::slot_bits(child_stabs.len());
+    let ordinal_of = |p: u32| match child_starts {
+        Some(starts) => starts.ordinal(p),
+        None => Some(p as usize),
+    };
     let mut forms: Vec<Form> = starts
         .par_iter()
         .enumerate()
         .map(|(i, &w)| {
+            // The children of the node AHEAD places on, asked for early.
+            if let Some(node) = starts
+                .get(i + AHEAD)
+                .and_then(|&a| dag.node(level8, a).ok())
+            {
+                for k in 0..node.child_mask().count_ones() {
+                    if let Some(s) = ordinal_of(node.pointer_at(k)).and_then(|o| slot_at.get(o)) {
+                        prefetch(s);
+                    }
+                }
+            }
             let node = dag.node(level8, w)?;
             let mut key = NodeKey {
                 slots: [0; 8],
                 attribute: node.attribute(),
             };
+            // The children's stabilisers, by slot (1 where none is).
+            let mut stabs = [1u8; 8];
             let mut rank = 0;
             for slot in 0..8u32 {
                 if node.child_mask() >> slot & 1 != 0 {
                     let p = node.pointer_at(rank);
                     rank += 1;
-                    let s = slot_at
-                        .get(p as usize)
+                    let s = ordinal_of(p)
+                        .and_then(|o| slot_at.get(o))
                         .map_or(0, |s| s.load(Ordering::Relaxed));
                     if s == 0 {
                         return Err(FormatError::new(
@@ -861,53 +1265,44 @@ fn merge_level(
                             format!("level {level}: pointer {p} names no node"),
                         ));
                     }
-                    key.slots[slot as usize] = s;
+                    key.slots[slot as usize] = s & ((1 << STAB_SHIFT) - 1);
+                    stabs[slot as usize] = (s >> STAB_SHIFT) as u8;
                 }
             }
             if level == 0 {
                 // The root is stored as it is (§23.6).
                 return Ok(Form {
-                    key,
+                    key: PackedKey::pack(&key, slot_bits),
                     node: i as u32,
                     reflection: 0,
                     stab: 1,
                 });
             }
-            Ok(least_reflection(key, i as u32, child_stabs))
+            Ok(least_form(&key, &stabs, i as u32, slot_bits))
         })
         .collect::<Result<_, FormatError>>()?;
     forms.par_sort_unstable_by(|a, b| a.key.cmp(&b.key));
-    // The level above reads these by word; the root has no level above.
-    let next_slot_at: Vec<AtomicU64> = (0..if level > 0 { units } else { 0 })
+    // The level above reads these by ordinal; the root has no level above.
+    let next_slot_at: Vec<AtomicU64> = (0..if level > 0 { starts.len() } else { 0 })
         .map(|_| AtomicU64::new(0))
         .collect();
     let (keys, stabs) = rank_sorted(
         &forms,
         |a, b| a.key == b.key,
-        |f| (f.key, f.stab),
+        |f| (f.key.unpack(slot_bits), f.stab),
         |f, rank, _| {
             if level > 0 {
-                next_slot_at[starts[f.node as usize] as usize].store(
-                    slot_value(rank, norm(f.reflection, f.stab)),
-                    Ordering::Relaxed,
-                );
+                next_slot_at[f.node as usize]
+                    .store(slot_and_stab(rank, f.reflection, f.stab), Ordering::Relaxed);
+            }
+        },
+        |f| {
+            if level > 0 {
+                prefetch(&next_slot_at[f.node as usize]);
             }
         },
     );
-    Ok((keys, stabs, next_slot_at))
-}
-
-/// The least of the 8 reflected forms of `key` (the first reflection
-/// reaching it on ties), as the form of 1.0 node `node`; `child_stabs` are
-/// the stabilisers of the classes below, by rank.
-fn least_reflection(key: NodeKey, node: u32, child_stabs: &[u8]) -> Form {
-    let (key, reflection, stab) = crate::v2::least_reflected_key(&key, child_stabs);
-    Form {
-        key,
-        node,
-        reflection,
-        stab,
-    }
+    Ok((keys, stabs, next_slot_at, record_starts))
 }
 
 #[cfg(test)]
@@ -936,6 +1331,56 @@ mod tests {
             }
         }
         vs
+    }
+
+    /// A key whose slot values fit `slot_bits` bits, from raw draws.
+    fn key_within(slot_bits: u32, slots: [u64; 8], attribute: u32) -> NodeKey {
+        let max = (1u64 << slot_bits) - 1;
+        NodeKey {
+            slots: slots.map(|s| s & max),
+            attribute,
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+
+        // Packed keys give the key back and sort (and compare equal) as the
+        // keys do, at every slot width the encoder uses.
+        #[test]
+        fn packed_keys_keep_the_keys_order(
+            slot_bits in 1u32..=36,
+            a in proptest::array::uniform8(any::<u64>()),
+            b in proptest::array::uniform8(any::<u64>()),
+            shared in 0usize..=8,
+            attributes in (any::<u32>(), any::<u32>()),
+        ) {
+            let ka = key_within(slot_bits, a, attributes.0);
+            let mut kb = key_within(slot_bits, b, attributes.1);
+            // Keys that agree on their first slots, to reach the later fields.
+            kb.slots[..shared].copy_from_slice(&ka.slots[..shared]);
+            if shared == 8 && attributes.0 % 2 == 0 {
+                kb.attribute = ka.attribute;
+            }
+            let (pa, pb) = (PackedKey::pack(&ka, slot_bits), PackedKey::pack(&kb, slot_bits));
+            prop_assert_eq!(pa.unpack(slot_bits), ka);
+            prop_assert_eq!(pb.unpack(slot_bits), kb);
+            prop_assert_eq!(pa.cmp(&pb), ka.cmp(&kb));
+            prop_assert_eq!(pa == pb, ka == kb);
+        }
+    }
+
+    #[test]
+    fn the_widest_slots_fit_the_packed_key() {
+        // Ranks below 2^32: the largest slot value is 2^35, 36 bits.
+        let bits = PackedKey::slot_bits(1 << 32);
+        assert_eq!(bits, 36);
+        let key = NodeKey {
+            slots: [1 << 35; 8],
+            attribute: u32::MAX,
+        };
+        assert_eq!(PackedKey::pack(&key, bits).unpack(bits), key);
+        assert_eq!(PackedKey::slot_bits(1), 4);
     }
 
     proptest! {
@@ -968,7 +1413,17 @@ mod tests {
             };
             let spilled = encode_levels(&dag, &spill_all).unwrap();
             prop_assert_eq!(spilled.spilled_bytes() > 0, !dag.is_empty());
+            // No room at all: every pass but the root's merge out of core.
+            let leaf_level = usize::from(dag.leaf_level());
+            prop_assert_eq!(
+                spilled.external_passes(),
+                if dag.is_empty() { 0 } else { (3 * leaf_level).max(1) }
+            );
             prop_assert_eq!(&spilled.into_encoded().unwrap(), &serial);
+            for pool in [&one_thread, &three_threads] {
+                let spilled = pool.install(|| encode_levels(&dag, &spill_all)).unwrap();
+                prop_assert_eq!(&spilled.into_encoded().unwrap(), &serial);
+            }
             let upgraded = crate::v2file::upgrade(&dag).unwrap();
             let mut streamed = Vec::new();
             crate::v2file::upgrade_to(&dag, &spill_all, &mut streamed).unwrap();
@@ -1003,14 +1458,7 @@ mod tests {
         .unwrap()
         .spilled_bytes();
         // The working set of the largest level, plus room for a few tables.
-        let work = (0..dag.levels().len())
-            .map(|l| {
-                let s = &dag.levels()[l];
-                let below = dag.levels().get(l + 1).map_or(0, |b| b.units());
-                s.node_count * WORK_BYTES_PER_NODE + 8 * (s.units() + below)
-            })
-            .max()
-            .unwrap();
+        let work = working_set(&dag);
         let some = encode_levels(
             &dag,
             &EncodeOptions {
@@ -1024,6 +1472,74 @@ mod tests {
             "{} of {everything}",
             some.spilled_bytes()
         );
+        assert_eq!(some.external_passes(), 0);
         assert_eq!(some.into_encoded().unwrap(), serial);
+    }
+
+    /// A DAG of `depth` from `n` random voxels, half of them in mirrored
+    /// blocks.
+    fn random_dag(depth: u8, n: usize, seed: u64) -> Vec<u8> {
+        let mut x = seed;
+        let mut next = move || {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (x >> 33) as u32
+        };
+        let voxels: Vec<(u32, u32, u32)> = (0..n).map(|_| (next(), next(), next())).collect();
+        let blocks: Vec<(u32, u32, u32)> = (0..n / 24).map(|_| (next(), next(), next())).collect();
+        let vs = scene(depth, &voxels, &blocks);
+        DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, vs)
+            .unwrap()
+            .to_bytes()
+    }
+
+    #[test]
+    fn budgets_between_the_levels_take_the_large_passes_out_of_core() {
+        for (depth, n, seed) in [(8u8, 6000, 1u64), (10, 20_000, 2), (9, 3000, 3)] {
+            let bytes = random_dag(depth, n, seed);
+            let dag = Dag::open(&bytes).unwrap();
+            let serial = crate::v2::encode_serial(&dag).unwrap();
+            let leaf_level = usize::from(dag.leaf_level());
+            let passes = 3 * leaf_level + 1;
+            // Budgets at each level's merge working set: the levels above it
+            // fit, the larger ones go out of core, within what is left.
+            let mut budgets: Vec<u64> = (0..=leaf_level).map(|l| merge_work(&dag, l)).collect();
+            budgets.sort_unstable();
+            budgets.dedup();
+            let dir = tempfile::tempdir().unwrap();
+            let one_thread = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .build()
+                .unwrap();
+            let two_threads = rayon::ThreadPoolBuilder::new()
+                .num_threads(2)
+                .build()
+                .unwrap();
+            let mut mixed = 0;
+            for &b in &budgets {
+                let options = EncodeOptions {
+                    memory_budget: Some(b),
+                    scratch_dir: Some(dir.path().to_path_buf()),
+                };
+                for pool in [&one_thread, &two_threads] {
+                    let encoded = pool.install(|| encode_levels(&dag, &options)).unwrap();
+                    let external = encoded.external_passes();
+                    assert!(external < passes, "depth {depth}, budget {b}");
+                    if external > 0 {
+                        mixed += 1;
+                    }
+                    assert!(
+                        encoded.into_encoded().unwrap() == serial,
+                        "depth {depth}, budget {b}, {external} passes out of core"
+                    );
+                }
+            }
+            assert!(
+                mixed > 0,
+                "depth {depth}: no budget took a pass out of core"
+            );
+            assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        }
     }
 }

@@ -480,13 +480,13 @@ pub fn upgrade(dag: &Dag<'_>) -> Result<Vec<u8>, ConvertError> {
 /// Writes the 2.0 file of [`upgrade`] to `w`, its levels encoded by
 /// [`encode_levels`] within `options`' memory budget and streamed to `w`
 /// (from the scratch file, where they went there). The bytes are those of
-/// [`upgrade`] whatever the budget. Returns the bytes of the encoder's
-/// tables that went to the scratch file (0: none did).
+/// [`upgrade`] whatever the budget. Returns what went through the
+/// encoder's scratch file.
 pub fn upgrade_to<W: Write + ?Sized>(
     dag: &Dag<'_>,
     options: &EncodeOptions,
     w: &mut W,
-) -> Result<u64, ConvertError> {
+) -> Result<Spill, ConvertError> {
     let mut encoded = encode_levels(dag, options)?;
     let extra = extra_sections(dag.bytes(), dag.sections(), dag.header().depth);
     let layout = layout_levels(&encoded.levels, file_header(dag.header()), &extra)?;
@@ -500,7 +500,20 @@ pub fn upgrade_to<W: Write + ?Sized>(
             }
         })
         .map_err(ConvertError::Io)?;
-    Ok(encoded.spilled_bytes())
+    Ok(Spill {
+        scratch_bytes: encoded.spilled_bytes(),
+        external_passes: encoded.external_passes(),
+    })
+}
+
+/// What went through the 2.0 encoder's scratch file ([`upgrade_to`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Spill {
+    /// Bytes written to the scratch file (0: none).
+    pub scratch_bytes: u64,
+    /// Passes over a level (merge, order, layout) that went out of core
+    /// because their working set was over the budget.
+    pub external_passes: usize,
 }
 
 /// The 1.0 file of the voxels, attributes, colours and root cube of the 2.0

@@ -393,6 +393,9 @@ pub struct ConvertSummary {
     pub v1_file_bytes: Option<u64>,
     /// Format 2.0: seconds spent encoding and writing the 2.0 file.
     pub upgrade_seconds: Option<f64>,
+    /// Format 2.0: the encoder's passes over a level that went out of core
+    /// (their working set over its budget) and the bytes of its scratch file.
+    pub encoder_spill: Option<dagfmt::v2file::Spill>,
 }
 
 impl ConvertSummary {
@@ -449,8 +452,16 @@ impl ConvertSummary {
         if let (Some(v1), Some(secs)) = (self.v1_file_bytes, self.upgrade_seconds) {
             let _ = writeln!(
                 s,
-                "format:   2.0, {:.3} of the 1.0 file ({v1} bytes); encoded in {secs:.2} s",
-                self.file_bytes as f64 / v1.max(1) as f64
+                "format:   2.0, {:.3} of the 1.0 file ({v1} bytes); encoded in {secs:.2} s{}",
+                self.file_bytes as f64 / v1.max(1) as f64,
+                match self.encoder_spill {
+                    Some(sp) if sp.scratch_bytes > 0 => format!(
+                        " ({} level passes out of core, {} through a scratch file)",
+                        sp.external_passes,
+                        human_bytes(sp.scratch_bytes)
+                    ),
+                    _ => String::new(),
+                }
             );
         }
         let _ = writeln!(
@@ -720,7 +731,10 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         &opts.output,
         opts.force,
         |w| match dagfmt::v2file::upgrade_to(&dag, &options, w) {
-            Ok(_) => Ok(()),
+            Ok(spill) => {
+                summary.encoder_spill = Some(spill);
+                Ok(())
+            }
             Err(dagfmt::v2file::ConvertError::Io(e)) => Err(e),
             Err(e) => {
                 let message = e.to_string();

@@ -517,7 +517,35 @@ pub fn merge(
                 ConvertError::io(format!("cannot create a file in {}", out_dir.display()), e)
             })?;
         crate::convert::write_dag(temp.path(), true, &dag, colours.as_ref(), file_header, None)?;
-        crate::cmd::upgrade::upgrade(temp.path(), output, 2, opts.force)?.output_bytes
+        // The merged levels are in the 1.0 file now: the encoder gets what
+        // is left of the limit without them.
+        let finished = (
+            dag.voxel_count(),
+            dag.level_sections().iter().map(|s| s.item_count).collect(),
+            dag.report().max_buckets,
+        );
+        drop(dag);
+        let upgraded =
+            crate::cmd::upgrade::upgrade_within(temp.path(), output, opts.force, limit, &tmp_dir)?;
+        return Ok(MergeSummary {
+            parts: parts.len(),
+            region_level: level,
+            cells: placement.cells.clone(),
+            complete,
+            format_version,
+            depth,
+            voxels: finished.0,
+            level_nodes: finished.1,
+            file_bytes: upgraded.output_bytes,
+            input_bytes,
+            max_buckets: finished.2,
+            temp_bytes: scratch.bytes_written(),
+            in_memory,
+            validate_seconds,
+            merge_seconds,
+            write_seconds: start.elapsed().as_secs_f64() - validate_seconds - merge_seconds,
+            total_seconds: start.elapsed().as_secs_f64(),
+        });
     };
     Ok(MergeSummary {
         parts: parts.len(),

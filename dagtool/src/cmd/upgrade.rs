@@ -59,3 +59,54 @@ pub fn upgrade(
         output_bytes,
     })
 }
+
+/// Writes the 2.0 file of the 1.0 file `input` to `output`, encoded within
+/// what is left of the memory `limit` (the process's resident memory, the
+/// input file and a margin taken; the encoder's tables past it, and its
+/// passes over levels whose working set does not fit, go through a scratch
+/// file in `scratch_dir`), as `dagtool convert` encodes it: the bytes are
+/// those of [`upgrade`].
+pub fn upgrade_within(
+    input: &Path,
+    output: &Path,
+    force: bool,
+    limit: u64,
+    scratch_dir: &Path,
+) -> Result<Upgraded, ConvertError> {
+    crate::output::check_output(output, force)?;
+    let file = FileBytes::open(input)?;
+    let bytes = file.bytes();
+    let named =
+        |e: &dyn std::fmt::Display| ConvertError::Input(format!("{}: {e}", input.display()));
+    let dag = dagfmt::Dag::open(bytes).map_err(|e| named(&e))?;
+    let budget = limit.saturating_sub(
+        crate::sysinfo::current_rss().unwrap_or(0)
+            + bytes.len() as u64
+            + (limit / 16).max(24 << 20),
+    );
+    let options = dagfmt::v2enc::EncodeOptions {
+        memory_budget: Some(budget),
+        scratch_dir: Some(scratch_dir.to_path_buf()),
+    };
+    let mut failure = None;
+    let written = write_atomic(output, force, |w| {
+        match v2file::upgrade_to(&dag, &options, w) {
+            Ok(_) => Ok(()),
+            Err(v2file::ConvertError::Io(e)) => Err(e),
+            Err(e) => {
+                let message = e.to_string();
+                failure = Some(e);
+                Err(std::io::Error::other(message))
+            }
+        }
+    });
+    if let Some(e) = failure {
+        return Err(named(&e));
+    }
+    Ok(Upgraded {
+        from: 1,
+        to: 2,
+        input_bytes: bytes.len() as u64,
+        output_bytes: written?,
+    })
+}

@@ -666,19 +666,9 @@ pub fn encode_levels(
         let counts: Vec<AtomicU32> = (0..class_counts[level + 1])
             .map(|_| AtomicU32::new(0))
             .collect();
-        keys.par_iter().for_each(|key| {
-            for &s in &key.slots {
-                if s != 0 {
-                    counts[((s - 1) >> 3) as usize].fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        });
+        count_references(&keys, &counts);
         let c: Vec<u32> = counts.into_iter().map(AtomicU32::into_inner).collect();
-        let mut next: Vec<(u32, u8)> = (0..c.len() as u32)
-            .filter(|&i| c[i as usize] > 1)
-            .map(|i| (i, 0))
-            .collect();
-        next.par_sort_unstable_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
+        let mut next = shared_by_count(&c);
         // A ranked key's references are normalised already (merge_level
         // builds them so), so the identity leaves it as it is: shared nodes,
         // and most sequential ones, are stored without a reflection.
@@ -1303,6 +1293,35 @@ fn merge_level(
         },
     );
     Ok((keys, stabs, next_slot_at, record_starts))
+}
+
+/// Adds each reference of `keys` to the count of the class it names in the
+/// level below (a slot holds `1 + 8 * rank + r`, 0 for no child).
+fn count_references(keys: &[NodeKey], counts: &[AtomicU32]) {
+    keys.par_iter().for_each(|key| {
+        for &s in &key.slots {
+            if s != 0 {
+                counts[((s - 1) >> 3) as usize].fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    });
+}
+
+/// The shared classes of a level (referenced more than once), in their
+/// stored order (§23.7): by reference count, most first, then by rank; each
+/// stored without a reflection. The sequential classes follow them, by
+/// parent.
+fn shared_by_count(counts: &[u32]) -> Vec<(u32, u8)> {
+    let mut shared: Vec<(u32, u8)> = (0..counts.len() as u32)
+        .filter(|&i| counts[i as usize] > 1)
+        .map(|i| (i, 0))
+        .collect();
+    shared.par_sort_unstable_by(|a, b| {
+        counts[b.0 as usize]
+            .cmp(&counts[a.0 as usize])
+            .then(a.0.cmp(&b.0))
+    });
+    shared
 }
 
 #[cfg(test)]

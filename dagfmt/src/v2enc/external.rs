@@ -714,20 +714,10 @@ pub(super) fn order_level_external(
     let counts: Vec<AtomicU32> = (0..below).map(|_| AtomicU32::new(0)).collect();
     for start in (0..classes).step_by(chunk) {
         let part = store.read_range(&keys, start..(start + chunk).min(classes))?;
-        part.par_iter().for_each(|key| {
-            for &s in &key.slots {
-                if s != 0 {
-                    counts[((s - 1) >> 3) as usize].fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        });
+        count_references(&part, &counts);
     }
     let c: Vec<u32> = counts.into_iter().map(AtomicU32::into_inner).collect();
-    let mut next: Vec<(u32, u8)> = (0..c.len() as u32)
-        .filter(|&i| c[i as usize] > 1)
-        .map(|i| (i, 0))
-        .collect();
-    next.par_sort_unstable_by(|a, b| c[b.0 as usize].cmp(&c[a.0 as usize]).then(a.0.cmp(&b.0)));
+    let mut next = shared_by_count(&c);
     let mut firsts = Vec::with_capacity(classes);
     let mut writer = store.begin::<NodeKey>();
     for start in (0..stored.len()).step_by(chunk) {

@@ -1506,7 +1506,10 @@ mod tests {
             (x >> 33) as u32
         };
         let voxels: Vec<(u32, u32, u32)> = (0..n).map(|_| (next(), next(), next())).collect();
-        let blocks: Vec<(u32, u32, u32)> = (0..n / 24).map(|_| (next(), next(), next())).collect();
+        // Block coordinates are multiplied by 4 in `scene`: keep them small.
+        let blocks: Vec<(u32, u32, u32)> = (0..n / 24)
+            .map(|_| (next() >> 4, next() >> 4, next() >> 4))
+            .collect();
         let vs = scene(depth, &voxels, &blocks);
         DagBuilder::from_voxels(depth, AttributeKind::VoxelCount, vs)
             .unwrap()

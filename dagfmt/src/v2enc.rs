@@ -844,16 +844,7 @@ pub fn encode_levels(
                     a
                 },
             );
-        let widths = best_widths(&hist).ok_or_else(|| {
-            FormatError::new(
-                ErrorCode::LevelTooLarge,
-                0,
-                format!(
-                    "level {level}: a reference needs more than {} bits",
-                    crate::v2::MAX_WIDTH
-                ),
-            )
-        })?;
+        let widths = level_widths(&hist, level)?;
         // Each chunk's bytes and its records' offsets within them.
         let pieces: Vec<(Vec<u8>, Vec<u64>)> = keys
             .par_chunks(LAYOUT_CHUNK)
@@ -1293,6 +1284,22 @@ fn merge_level(
         },
     );
     Ok((keys, stabs, next_slot_at, record_starts))
+}
+
+/// The reference widths of node level `level` from the histogram of its
+/// references' bit lengths (§23.2), or the error of a level whose
+/// references need more than the widest width.
+fn level_widths(hist: &[u64; 65], level: usize) -> Result<[u8; 3], FormatError> {
+    best_widths(hist).ok_or_else(|| {
+        FormatError::new(
+            ErrorCode::LevelTooLarge,
+            0,
+            format!(
+                "level {level}: a reference needs more than {} bits",
+                crate::v2::MAX_WIDTH
+            ),
+        )
+    })
 }
 
 /// Adds each reference of `keys` to the count of the class it names in the

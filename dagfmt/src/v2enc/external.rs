@@ -820,16 +820,7 @@ pub(super) fn layout_level_external(
             *x += y;
         }
     }
-    let widths = best_widths(&hist).ok_or_else(|| {
-        FormatError::new(
-            ErrorCode::LevelTooLarge,
-            0,
-            format!(
-                "level {level}: a reference needs more than {} bits",
-                crate::v2::MAX_WIDTH
-            ),
-        )
-    })?;
+    let widths = level_widths(&hist, level)?;
     let mut writer = store.begin::<u8>();
     let mut crc = 0u32;
     let mut length = 0u64;

@@ -562,7 +562,7 @@ pub fn encode(dag: &Dag<'_>) -> Result<Encoded, FormatError> {
         Ok(levels) => levels.into_encoded().map_err(unexpected),
         Err(crate::v2file::ConvertError::Format(e)) => Err(e),
         Err(crate::v2file::ConvertError::Io(e)) => Err(unexpected(e)),
-        Err(crate::v2file::ConvertError::Build(e)) => Err(FormatError::new(
+        Err(e) => Err(FormatError::new(
             ErrorCode::LevelTooLarge,
             0,
             format!("2.0 encoding: {e}"),

@@ -29,14 +29,18 @@
 //! results are joined in order, or a sort of distinct keys).
 //!
 //! Each pass over a level holds a working set that grows with the level
-//! (`merge_work`, `order_work`, `layout_work`: 160 bytes per 1.0 node and 8
-//! per word in the merge, about 170 per class in the order pass, 116 per
-//! record and twice its bytes in the layout). A pass whose working set is
+//! (`merge_work`, `order_work`, `layout_work`, counted from the pass's
+//! allocations: at most 206 bytes per 1.0 node, 9 per node below and 3/16
+//! per word of the two levels in the merge; at most 152 per class and 21–36
+//! per class below in the order pass; about 100 per record, 16 per class
+//! below and three times the level's bytes in the layout). A pass whose working set is
 //! over the budget goes out of core instead (module `external`: the merge as an
 //! external sort of the level's forms in runs, the order and the layout a
 //! chunk at a time), within the budget; it makes the same tables, so the
-//! bytes are again the same. The leaves' layout (44 bytes per leaf class)
-//! and the root's merge are always in memory.
+//! bytes are again the same. The leaves' layout (48 bytes per leaf class)
+//! and the root's merge are always in memory. What the out-of-core passes
+//! still hold per node or class is the encoder's least ([`least_memory`]),
+//! which a caller may have it refuse instead of exceeding.
 
 use std::fs::File;
 use std::io::{self, Read, Seek, SeekFrom, Write};
@@ -67,69 +71,127 @@ pub struct EncodeOptions {
     /// the budget; what such a pass still holds per item (a rank and a
     /// reflection per 1.0 node of the level in the merge, 16 bytes per class
     /// in the order and the layout, with the tables of the level below it
-    /// reads at random) is the least it needs, and a budget below that is
-    /// exceeded by it.
+    /// reads at random) is the least it needs ([`least_memory`]), and a
+    /// budget below that is exceeded by it.
     pub memory_budget: Option<u64>,
+    /// Refuse a budget below the least the encoder holds
+    /// ([`ConvertError::Budget`]) instead of exceeding it: checked for the
+    /// merge before it starts (from the 1.0 levels), and for the order and
+    /// the layout once the merge has counted the classes (their least is
+    /// then exact, where [`least_memory`] counts a class per 1.0 node).
+    pub refuse_below_least: bool,
     /// Directory of the scratch file (an unnamed temporary file); default:
     /// the system's temporary directory.
     pub scratch_dir: Option<PathBuf>,
 }
 
-/// Bytes of the merge pass's working set per 1.0 node of a level: its form
-/// (packed key, node, reflection, stabiliser: 48 bytes) and its start word
-/// (4), plus the ranked key of its class (72) at worst, with room to spare
-/// (the forms were 80 bytes); the tables by node of the level and the level
-/// below, and their record starts, add at most 8 bytes a word.
-const WORK_BYTES_PER_NODE: u64 = 160;
+// The working sets below count what each pass in memory allocates, at its
+// largest moment, from the sizes of its items: a `Form` (48 bytes), a
+// leaf's form (16), a `NodeKey` (72), a stored node (8: u32 rank, u8
+// reflection, padded), a slot value (8), a count (4), an address (8). A
+// vector collected from a parallel iterator of unknown length (`Result`s,
+// `flat_map_iter`) is built in pieces that grow by doubling and are then
+// joined: up to twice its bytes in pieces plus the joined copy, 3 times its
+// bytes; a vector grown by pushes alone is counted at twice its bytes.
+// Where a level's classes are not known yet (the merge), there are as many
+// as 1.0 nodes, the most there can be.
 
-/// Bytes of the merge pass's working set per leaf: its form (16) and slot
-/// value (8), plus the ranked mask and stabiliser of its class (9) at worst.
-const WORK_BYTES_PER_LEAF: u64 = 33;
+/// Bytes of a merge pass's `Form`.
+const FORM_BYTES: u64 = std::mem::size_of::<Form>() as u64;
+/// Bytes of a ranked key.
+const KEY_BYTES: u64 = std::mem::size_of::<NodeKey>() as u64;
+/// Bytes of a stored node (class rank and reflection) in the stored order.
+const STORED_BYTES: u64 = std::mem::size_of::<(u32, u8)>() as u64;
+/// Bytes of a leaf's form in the merge of the leaves (mask, index,
+/// reflection).
+const LEAF_FORM_BYTES: u64 = std::mem::size_of::<(u64, u32, u8)>() as u64;
+/// The most bytes of a 2.0 record (§23.2): its header, 9 two-bit codes (8
+/// children and a base reference) and 9 references of the widest width.
+const RECORD_BYTES_MAX: u64 = 4 + (9 * 2 + 9 * crate::v2::MAX_WIDTH as u64).div_ceil(8);
 
-/// Bytes of the order pass's working set per class of a level: its ranked
-/// key and its key as stored (72 each), its place in the stored order (8)
-/// and its first sequential child (8, twice while the chunks are joined);
-/// per class below: its stabiliser (1), its count (4, twice while counting)
-/// and its place in the order below (8, twice for a sequential child).
-const ORDER_BYTES_PER_CLASS: u64 = 168;
-const ORDER_BYTES_PER_CLASS_BELOW: u64 = 25;
-
-/// Bytes of the layout's working set per record of a node level: its key
-/// (72), first sequential child (8), place in the stored order (8), count
-/// (4), offset in its chunk (8) and address by position and by rank (8 + 8),
-/// plus twice its bytes (the chunks' pieces and the joined level; at most
-/// the bytes of its 1.0 node, 4 per word); per class below: its address by
-/// rank and by position (16).
-const LAYOUT_BYTES_PER_RECORD: u64 = 116;
-const LAYOUT_BYTES_PER_CLASS_BELOW: u64 = 16;
-
-/// Bytes of the leaves' layout per class: its place in the stored order
-/// (8), mask (8), count (4), address (8) and bytes (8, twice while they are
-/// collected).
-const LAYOUT_BYTES_PER_LEAF: u64 = 44;
-
-/// The working set of the merge pass in memory at level `level`.
-fn merge_work(dag: &Dag<'_>, level: usize) -> u64 {
-    let levels = dag.levels();
-    if level == usize::from(dag.leaf_level()) {
-        return levels[level].node_count * WORK_BYTES_PER_LEAF;
-    }
-    let below = levels.get(level + 1).map_or(0, |s| s.units());
-    levels[level].node_count * WORK_BYTES_PER_NODE + 8 * (levels[level].units() + below)
+/// Bytes of [`RecordStarts`] over a level of `units` words: a bit per word
+/// and a u32 count per 64 words.
+fn record_starts_bytes(units: u64) -> u64 {
+    12 * units.div_ceil(64)
 }
 
-/// The working set of the order pass in memory at node level `level` of
-/// `classes` classes over `below` classes.
+/// What the merge of a level reads of the level below, `nodes` 1.0 nodes
+/// (or leaves) of `units` words (`None` for the leaves, whose pointers are
+/// their indices): the slot value of each node by ordinal (8 bytes), the
+/// stabilisers of as many classes (1), the record starts. While the table
+/// by ordinal is made from an out-of-core merge's ranks and reflections (5
+/// bytes a node), both are held: `.1`.
+fn merge_inputs(nodes: u64, units: Option<u64>) -> (u64, u64) {
+    let held = 8 * nodes + nodes + units.map_or(0, record_starts_bytes);
+    (held, held + 5 * nodes)
+}
+
+/// The working set of the merge pass in memory at level `level`: the
+/// tables of the level below it reads, and the larger of its two moments:
+/// the forms being collected (`Result`s in parallel: 3 times their bytes)
+/// beside the record starts (4 bytes a node, and the bitmap of this level),
+/// or the forms sorted, the table by ordinal being written (8 bytes a node)
+/// and the ranked keys and stabilisers in chunks, then joined (2 × 73 bytes
+/// a class).
+fn merge_work(dag: &Dag<'_>, level: usize) -> u64 {
+    let levels = dag.levels();
+    let n = levels[level].node_count;
+    if level == usize::from(dag.leaf_level()) {
+        // The leaves' forms (3 × 16 while collected), or the forms, the
+        // slot value by leaf (8) and the ranked masks and stabilisers
+        // (2 × 9 a class).
+        let collect = 3 * LEAF_FORM_BYTES * n;
+        let rank = LEAF_FORM_BYTES * n + 8 * n + 2 * 9 * n;
+        return collect.max(rank);
+    }
+    let below = &levels[level + 1];
+    let (inputs, converting) =
+        merge_inputs(below.node_count, (!below.is_leaf).then(|| below.units()));
+    let starts = 4 * n + record_starts_bytes(levels[level].units());
+    let collect = starts + 3 * FORM_BYTES * n;
+    let rank = starts + FORM_BYTES * n + 8 * n + 2 * (KEY_BYTES + 1) * n;
+    converting.max(inputs + collect.max(rank))
+}
+
+/// The working set of the order pass in memory at a node level of
+/// `classes` classes over `below` classes: the stored order of the level
+/// (8 bytes a class) throughout; first its ranked keys and the keys as
+/// stored (72 + 72), with the stabilisers (1), the counts (4) and the
+/// shared classes of the level below (a vector grown by pushes: 2 × 8);
+/// then the keys as stored, the first sequential child of each in chunks
+/// and joined (8 + 8) and the order below (2 × 8) in chunks and joined.
 fn order_work(classes: usize, below: usize) -> u64 {
-    classes as u64 * ORDER_BYTES_PER_CLASS + below as u64 * ORDER_BYTES_PER_CLASS_BELOW
+    let (c, b) = (classes as u64, below as u64);
+    let keys = (STORED_BYTES + 2 * KEY_BYTES) * c + (1 + 4 + 2 * STORED_BYTES) * b;
+    let firsts = (STORED_BYTES + KEY_BYTES + 8 + 8) * c + (4 + 2 * 2 * STORED_BYTES) * b;
+    keys.max(firsts)
 }
 
 /// The working set of the layout in memory at node level `level` of
-/// `classes` classes over `below` classes.
+/// `classes` classes over `below` classes: the addresses of the level
+/// below by rank and by position (8 + 8 a class below); the stored order
+/// and counts of this level (8 + 4 a class); then either its keys and first
+/// sequential children (72 + 8) with the chunks' records (pushed: twice
+/// their bytes) and offsets (8), or the chunks' records, the joined level
+/// and the addresses by position and by rank (8 + 8). The level's bytes
+/// are at most those of its 1.0 nodes (4 a word) and at most
+/// [`RECORD_BYTES_MAX`] a record.
 fn layout_work(dag: &Dag<'_>, level: usize, classes: usize, below: usize) -> u64 {
-    classes as u64 * LAYOUT_BYTES_PER_RECORD
-        + 8 * dag.levels()[level].units()
-        + below as u64 * LAYOUT_BYTES_PER_CLASS_BELOW
+    let (c, b) = (classes as u64, below as u64);
+    let bytes = (4 * dag.levels()[level].units()).min(RECORD_BYTES_MAX * c);
+    let held = 16 * b + (STORED_BYTES + 4) * c;
+    let records = (KEY_BYTES + 8 + 8) * c + 2 * bytes;
+    let joined = (8 + 8 + 8) * c + 3 * bytes;
+    held + records.max(joined)
+}
+
+/// The working set of the leaves' layout over `leaves` leaf classes: their
+/// stored order (8 bytes), masks (8) and addresses by rank (8), with their
+/// counts (4) first, then the leaves' bytes collected in parallel (3 × 8).
+fn leaf_layout_work(leaves: usize) -> u64 {
+    let l = leaves as u64;
+    let held = (STORED_BYTES + 8 + 8) * l;
+    held + (4 * l).max(3 * 8 * l)
 }
 
 /// The largest working set of a pass in memory over the levels of `dag`,
@@ -144,7 +206,7 @@ fn working_set(dag: &Dag<'_>) -> u64 {
     (0..=leaf_level)
         .map(|l| {
             if l == leaf_level {
-                return merge_work(dag, l).max(n(l) as u64 * LAYOUT_BYTES_PER_LEAF);
+                return merge_work(dag, l).max(leaf_layout_work(n(l)));
             }
             merge_work(dag, l)
                 .max(order_work(n(l), n(l + 1)))
@@ -152,6 +214,33 @@ fn working_set(dag: &Dag<'_>) -> u64 {
         })
         .max()
         .unwrap_or(0)
+}
+
+/// The most the encoder holds in memory at once for `dag` with no memory
+/// budget's help: the largest working set of its passes in memory over a
+/// level (see [`EncodeOptions::memory_budget`]), counted with as many
+/// classes per level as 1.0 nodes. With a budget of at least this, every
+/// pass runs in memory and the finished tables that do not fit what is
+/// left go to the scratch file.
+pub fn in_memory_working_set(dag: &Dag<'_>) -> u64 {
+    working_set(dag)
+}
+
+/// The least the encoder holds in memory for `dag`, whatever the budget:
+/// with a budget below [`in_memory_working_set`], the passes over the
+/// largest levels go out of core in chunks sized to the budget, but each
+/// still holds some bytes per 1.0 node or class of its level and the level
+/// below (a rank and a reflection per node in the merge; the stored order,
+/// counts and addresses in the order and the layout), its least chunks and
+/// its buffers. This is the largest of those over the levels (with as many
+/// classes as 1.0 nodes): a budget below it is exceeded by up to the
+/// difference, so a caller bound by a memory limit should refuse one.
+pub fn least_memory(dag: &Dag<'_>) -> u64 {
+    if dag.is_empty() {
+        return 0;
+    }
+    let nodes: Vec<usize> = dag.levels().iter().map(|s| s.node_count as usize).collect();
+    external::least_for_merge(dag).max(external::least_for_order_and_layout(dag, &nodes))
 }
 
 /// A chunk's first-sequential-child positions and its sequential children
@@ -547,6 +636,15 @@ pub fn encode_levels(
     // The largest per-level working set, which the budget must leave room
     // for; a pass whose working set is over the budget goes out of core.
     let budget = options.memory_budget;
+    let refuse_below = |least: u64| match budget {
+        Some(b) if options.refuse_below_least && b < least => {
+            Err(ConvertError::Budget { least, budget: b })
+        }
+        _ => Ok(()),
+    };
+    if !dag.is_empty() {
+        refuse_below(external::least_for_merge(dag))?;
+    }
     let work = budget.map_or(0, |b| working_set(dag).min(b));
     let fits = |estimate: u64| budget.is_none_or(|b| estimate <= b);
     // What an out-of-core pass may hold: the budget less the tables held.
@@ -633,6 +731,7 @@ pub fn encode_levels(
     // The root's stabiliser is not needed: nothing refers to it.
     drop(child_stabs);
     drop(slots);
+    refuse_below(external::least_for_order_and_layout(dag, &class_counts))?;
 
     // Pass 2: the order of each level, top-down (§23.7).
     let mut stored: Vec<(u32, u8)> = vec![(0, 0)];
@@ -1435,6 +1534,7 @@ mod tests {
             let dir = tempfile::tempdir().unwrap();
             let spill_all = EncodeOptions {
                 memory_budget: Some(0),
+                refuse_below_least: false,
                 scratch_dir: Some(dir.path().to_path_buf()),
             };
             let spilled = encode_levels(&dag, &spill_all).unwrap();
@@ -1478,6 +1578,7 @@ mod tests {
             &dag,
             &EncodeOptions {
                 memory_budget: Some(0),
+                refuse_below_least: false,
                 scratch_dir: Some(dir.path().to_path_buf()),
             },
         )
@@ -1489,6 +1590,7 @@ mod tests {
             &dag,
             &EncodeOptions {
                 memory_budget: Some(work + everything / 3),
+                refuse_below_least: false,
                 scratch_dir: Some(dir.path().to_path_buf()),
             },
         )
@@ -1549,6 +1651,7 @@ mod tests {
             for &b in &budgets {
                 let options = EncodeOptions {
                     memory_budget: Some(b),
+                    refuse_below_least: false,
                     scratch_dir: Some(dir.path().to_path_buf()),
                 };
                 for pool in [&one_thread, &two_threads] {

@@ -351,6 +351,14 @@ pub enum ConvertError {
     Build(BuildError),
     /// Writing the result failed.
     Io(io::Error),
+    /// The memory budget is below the least the encoder holds (with
+    /// [`crate::v2enc::EncodeOptions::refuse_below_least`]).
+    Budget {
+        /// The least the encoder holds, in bytes.
+        least: u64,
+        /// The budget it was given, in bytes.
+        budget: u64,
+    },
 }
 
 impl std::fmt::Display for ConvertError {
@@ -359,6 +367,10 @@ impl std::fmt::Display for ConvertError {
             ConvertError::Format(e) => write!(f, "{e}"),
             ConvertError::Build(e) => write!(f, "{e}"),
             ConvertError::Io(e) => write!(f, "{e}"),
+            ConvertError::Budget { least, budget } => write!(
+                f,
+                "the 2.0 encoder needs at least {least} bytes of memory for this file, more than its budget of {budget}"
+            ),
         }
     }
 }

@@ -23,7 +23,7 @@ use crate::output::{check_output, write_atomic};
 use crate::pipeline::{self, Bins, ChunkOutput, SolidMode, VoxelizeConfig};
 use crate::region::{ColourMode, Placement, Region};
 use crate::sysinfo::{
-    current_rss, human_bytes, peak_rss, process_cpu_seconds, thread_cpu_seconds, total_memory,
+    MemoryMeter, human_bytes, process_cpu_seconds, thread_cpu_seconds, total_memory,
 };
 use crate::voxelize::{MAX_CHUNK_BITS, MIN_CHUNK_BITS, NO_TAG};
 use crate::voxlist;
@@ -102,7 +102,10 @@ pub struct ConvertOptions {
     pub force: bool,
     /// Show a progress bar (only on a terminal).
     pub progress: bool,
-    /// Memory limit in bytes (`None`: 3/4 of physical memory).
+    /// Memory limit in bytes (`None`: 3/4 of physical memory), on the
+    /// conversion's own memory: the process's resident memory above what
+    /// was resident when the conversion started (see
+    /// [`crate::sysinfo::MemoryMeter`]).
     pub memory_limit: Option<u64>,
     /// log2 of the chunk side (`None`: automatic).
     pub chunk_bits: Option<u32>,
@@ -142,6 +145,9 @@ pub struct ConvertOptions {
     /// memory limit beside what is resident (no file written, synced,
     /// renamed and mapped again to be encoded); else it is written.
     v1_in_memory: Option<Arc<Mutex<Option<Vec<u8>>>>>,
+    /// The conversion's memory, started by [`convert`] (and kept by the
+    /// 2.0 conversion's 1.0 stage, so that both count from one start).
+    meter: MemoryMeter,
 }
 
 /// The mesh kept by a conversion with [`ConvertOptions::cache_input`]: the
@@ -314,6 +320,7 @@ impl ConvertOptions {
             progress_hook: None,
             cache_input: false,
             v1_in_memory: None,
+            meter: MemoryMeter::whole_process(),
         }
     }
 }
@@ -365,7 +372,9 @@ pub struct ConvertSummary {
     pub write_seconds: f64,
     /// Total seconds.
     pub total_seconds: f64,
-    /// Peak resident set size (`VmHWM`).
+    /// The conversion's peak resident set size: the process's peak
+    /// (`VmHWM`) above what was resident when it started (see
+    /// [`crate::sysinfo::MemoryMeter`]), which the memory limit bounds.
     pub peak_rss: Option<u64>,
     /// The memory limit in bytes.
     pub memory_limit: u64,
@@ -642,12 +651,15 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
             opts.format_version
         )));
     }
+    // The memory limit is on what the conversion adds to the process.
+    let mut opts = opts.clone();
+    opts.meter = MemoryMeter::start();
     // A region build writes a part, and parts are format 1 (spec §24): the
     // merge of all the parts writes the whole volume in `format_version`.
     if opts.format_version == 1 || opts.region.is_some() {
-        convert_v1(opts)
+        convert_v1(&opts)
     } else {
-        convert_v2(opts)
+        convert_v2(&opts)
     }
 }
 
@@ -716,13 +728,17 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
         0
     } else {
         limit.saturating_sub(
-            current_rss().unwrap_or(0)
+            opts.meter.resident().unwrap_or(0)
                 + map.as_ref().map_or(0, |m| m.bytes().len() as u64)
                 + margin(limit),
         )
     };
     let options = dagfmt::v2enc::EncodeOptions {
         memory_budget: Some(budget),
+        // Not refused: the encoder's least counts its vectors at their
+        // largest and overshoots less than it says (dragon d12 within
+        // 125M, refused at 22.5 MiB of least against a 20 MiB budget).
+        refuse_below_least: false,
         scratch_dir: Some(opts.tmp_dir.clone().unwrap_or_else(|| dir.clone())),
     };
     let mut failure = None;
@@ -754,6 +770,8 @@ fn convert_v2(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     drop(map);
     drop(temp);
     let upgrade = start.elapsed().as_secs_f64();
+    // The peak of the whole conversion, the encoding included.
+    summary.peak_rss = opts.meter.peak();
     summary.upgrade_seconds = Some(upgrade);
     summary.total_seconds += upgrade;
     Ok(summary)
@@ -852,7 +870,7 @@ fn convert_v1(opts: &ConvertOptions) -> Result<ConvertSummary, ConvertError> {
     summary.temp_bytes = scratch.bytes_written();
     summary.temp_peak_bytes = scratch.peak_bytes();
     summary.total_seconds = start.elapsed().as_secs_f64();
-    summary.peak_rss = peak_rss();
+    summary.peak_rss = opts.meter.peak();
     summary.cpu_seconds = process_cpu_seconds();
     summary.main_thread_cpu_seconds = thread_cpu_seconds();
     opts.report(ConvertProgress::Written);
@@ -909,14 +927,14 @@ fn convert_tiles(
     convert_points(opts, limit, scratch, Box::new(chain))
 }
 
-/// Checks the peak memory so far against the limit: loading the input is
-/// the minimal working set, which the limit cannot shrink.
-fn check_memory(limit: u64, what: &str) -> Result<(), ConvertError> {
-    if let Some(rss) = peak_rss()
+/// Checks the conversion's peak memory so far against the limit: loading
+/// the input is the minimal working set, which the limit cannot shrink.
+fn check_memory(meter: &MemoryMeter, limit: u64, what: &str) -> Result<(), ConvertError> {
+    if let Some(rss) = meter.peak()
         && rss > limit
     {
         return Err(ConvertError::Limit(format!(
-            "memory limit of {} exceeded ({} resident) while {what}; raise --memory-limit or lower the depth",
+            "memory limit of {} exceeded (the conversion held {}) while {what}; raise --memory-limit or lower the depth",
             human_bytes(limit),
             human_bytes(rss)
         )));
@@ -1011,10 +1029,10 @@ fn spill_settings(
     }
 }
 
-/// What the merge of spilled runs may use: the limit less what is resident
-/// once the voxelization's memory is freed.
-fn merge_budget(limit: u64) -> u64 {
-    limit.saturating_sub(current_rss().unwrap_or(0) + margin(limit))
+/// What the merge of spilled runs may use: the limit less what the
+/// conversion holds once the voxelization's memory is freed.
+fn merge_budget(meter: &MemoryMeter, limit: u64) -> u64 {
+    limit.saturating_sub(meter.resident().unwrap_or(0) + margin(limit))
 }
 
 fn write_output(
@@ -1036,7 +1054,7 @@ fn write_output(
             let limit = opts
                 .memory_limit
                 .unwrap_or_else(|| total_memory().map_or(8 << 30, |m| m / 4 * 3));
-            let resident = current_rss().unwrap_or(0);
+            let resident = opts.meter.resident().unwrap_or(0);
             if resident.saturating_add(layout.file_size()) + margin(limit) <= limit {
                 let mut bytes = Vec::with_capacity(layout.file_size() as usize);
                 layout
@@ -1154,8 +1172,8 @@ fn convert_voxels(
     }
     let t = Instant::now();
     let list = voxlist::read(&opts.input, opts.depth)?;
-    check_memory(limit, "reading the voxel list")?;
-    let resident = current_rss().unwrap_or(0);
+    check_memory(&opts.meter, limit, "reading the voxel list")?;
+    let resident = opts.meter.resident().unwrap_or(0);
     let plan = plan_memory(
         limit,
         resident,
@@ -1195,7 +1213,7 @@ fn convert_voxels(
     }
     drop(list);
     let spinner = merge_spinner(opts);
-    let dag = sink.finish(|| merge_budget(limit), &|m| {
+    let dag = sink.finish(|| merge_budget(&opts.meter, limit), &|m| {
         spinner.set_message(m.to_string())
     })?;
     spinner.finish_and_clear();
@@ -1430,7 +1448,7 @@ fn convert_mesh(
     summary.bin_seconds = t_bin.elapsed().as_secs_f64();
     summary.parse_seconds = parse_seconds;
     summary.load_seconds = t.elapsed().as_secs_f64();
-    check_memory(limit, "binning triangles")?;
+    check_memory(&opts.meter, limit, "binning triangles")?;
 
     let t = Instant::now();
     let threads = rayon::current_num_threads();
@@ -1455,7 +1473,7 @@ fn convert_mesh(
     };
     let pipeline_bytes =
         (4 * batch as u64 + threads as u64).min(chunks + threads as u64) * chunk_bytes;
-    let resident = current_rss().unwrap_or(0);
+    let resident = opts.meter.resident().unwrap_or(0);
     let plan = plan_memory(
         limit,
         resident + pipeline_bytes + solid_state,
@@ -1582,7 +1600,7 @@ fn convert_mesh(
     drop(mesh);
     let colors = colors.map(ColourSink::finish).transpose()?;
     let spinner = merge_spinner(opts);
-    let dag = sink.finish(|| merge_budget(limit), &|m| {
+    let dag = sink.finish(|| merge_budget(&opts.meter, limit), &|m| {
         spinner.set_message(m.to_string())
     })?;
     spinner.finish_and_clear();
@@ -1664,7 +1682,7 @@ fn build_sorted(
         None => None,
     };
     let spinner = merge_spinner(opts);
-    let dag = sink.finish(|| merge_budget(limit), &|m| {
+    let dag = sink.finish(|| merge_budget(&opts.meter, limit), &|m| {
         spinner.set_message(m.to_string())
     })?;
     spinner.finish_and_clear();
@@ -1741,7 +1759,7 @@ fn convert_points(
         radius,
     };
     let colored = opts.colors && points.has_colors();
-    let resident = current_rss().unwrap_or(0);
+    let resident = opts.meter.resident().unwrap_or(0);
     // A quarter of the limit sorts the voxels; the DAG builder gets the rest.
     let sort_bytes = (limit / 4).max(16 << 20);
     let plan = plan_memory(
@@ -1908,7 +1926,7 @@ fn convert_grid(
         Some(b) => (b.min, b.size),
         None => (grid.origin, grid.voxel_size * (1u64 << depth) as f64),
     };
-    let resident = current_rss().unwrap_or(0);
+    let resident = opts.meter.resident().unwrap_or(0);
     let sort_bytes = (grid.voxels.len() as u64 * 16).clamp(1 << 20, limit / 4);
     let plan = plan_memory(
         limit,

@@ -107,8 +107,12 @@ MEMORY, TEMPORARY FILES AND OUTPUT
   build continues in runs of whole 128^3 subtrees, each written to temporary
   files, and the runs are merged level by level with exact deduplication: the
   file is the same, byte for byte, as one built in memory, whatever the limit.
+  The limit bounds the conversion's own memory: its peak resident memory above
+  what the process held when it started (the same as the process's peak for
+  the command line; in a library or Python process, memory held or peaked at
+  before the conversion is not counted).
   The summary says how many runs were spilled, how many bytes were written to
-  temporary files, and the peak resident memory.
+  temporary files, and the conversion's peak resident memory.
   Temporary files go to --tmp-dir (default: the output's directory); they need
   up to about three times the output's size, which the summary reports as the
   most they held at once. They are unnamed (O_TMPFILE on Linux): nothing is left
@@ -150,7 +154,8 @@ enum Command {
         /// The file to write.
         #[arg(short, long)]
         output: PathBuf,
-        /// Memory to work in (e.g. 4G, 512M); default: 3/4 of physical memory.
+        /// Memory to work in (e.g. 4G, 512M), counted as what the merge adds
+        /// to the process's resident memory; default: 3/4 of physical memory.
         #[arg(long)]
         memory_limit: Option<String>,
         /// Directory of the (unnamed) temporary files; default: the output's
@@ -419,7 +424,8 @@ struct ConvertArgs {
     /// K <= D-2) into a part for `dagtool merge`; needs --bounds.
     #[arg(long, value_name = "K:X,Y,Z")]
     region: Option<String>,
-    /// Memory to work in (e.g. 4G, 512M): beyond it the DAG is built in runs
+    /// Memory to work in (e.g. 4G, 512M), counted as what the conversion adds
+    /// to the process's resident memory: beyond it the DAG is built in runs
     /// spilled to temporary files; default: 3/4 of physical memory.
     #[arg(long)]
     memory_limit: Option<String>,

@@ -38,7 +38,7 @@ use rayon::prelude::*;
 use crate::external::{ColourSink, MIN_MERGE_BUDGET, MemoryMerge, NodeBatch, RunMerge, Scratch};
 use crate::output::check_output;
 use crate::region::{ColourMode, Placement, Region, check_part, rules};
-use crate::sysinfo::{current_rss, total_memory};
+use crate::sysinfo::{MemoryMeter, total_memory};
 
 /// Options of `dagtool merge`.
 #[derive(Clone, Debug)]
@@ -317,6 +317,8 @@ pub fn merge(
     opts: &MergeOptions,
 ) -> Result<MergeSummary, ConvertError> {
     let start = Instant::now();
+    // The memory limit is on what the merge adds to the process.
+    let meter = MemoryMeter::start();
     if parts.is_empty() {
         return Err(ConvertError::Usage("merge needs at least one part".into()));
     }
@@ -435,8 +437,8 @@ pub fn merge(
     let needed = MemoryMerge::estimate(lower.clone().map(|l| level_totals(&opened, l)))
         + opened.iter().map(|p| p.bytes).max().unwrap_or(0)
         + largest_batch;
-    let available =
-        limit.saturating_sub(current_rss().unwrap_or(0) + colour_cap + (limit / 16).max(24 << 20));
+    let available = limit
+        .saturating_sub(meter.resident().unwrap_or(0) + colour_cap + (limit / 16).max(24 << 20));
     let in_memory = opts.buckets.is_none() && needed <= available;
     let mut levels = if in_memory {
         let mut m = MemoryMerge::new(depth, header.attribute_kind, split)?;
@@ -481,7 +483,7 @@ pub fn merge(
     }
     drop(opened);
     let budget = limit
-        .saturating_sub(current_rss().unwrap_or(0) + (limit / 16).max(24 << 20))
+        .saturating_sub(meter.resident().unwrap_or(0) + (limit / 16).max(24 << 20))
         .max(MIN_MERGE_BUDGET);
     let colours = colours.map(ColourSink::finish).transpose()?;
     let dag = match levels {
@@ -525,8 +527,14 @@ pub fn merge(
             dag.report().max_buckets,
         );
         drop(dag);
-        let upgraded =
-            crate::cmd::upgrade::upgrade_within(temp.path(), output, opts.force, limit, &tmp_dir)?;
+        let upgraded = crate::cmd::upgrade::upgrade_within(
+            temp.path(),
+            output,
+            opts.force,
+            limit,
+            &meter,
+            &tmp_dir,
+        )?;
         return Ok(MergeSummary {
             parts: parts.len(),
             region_level: level,

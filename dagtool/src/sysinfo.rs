@@ -20,6 +20,86 @@ pub fn current_rss() -> Option<u64> {
     status_field("VmRSS")
 }
 
+/// Resets the process's peak resident set size (`VmHWM`) to its current
+/// resident size (`echo 5 > /proc/self/clear_refs`, Linux 4.0 and later);
+/// false where that file cannot be written.
+fn reset_peak_rss() -> bool {
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open("/proc/self/clear_refs")
+        .and_then(|mut f| std::io::Write::write_all(&mut f, b"5"))
+        .is_ok()
+}
+
+/// The memory of one conversion (or merge, or upgrade) in a process that
+/// may hold other things: its resident memory above what was resident when
+/// it started, so that a memory limit applies to the conversion itself, not
+/// to what a long-lived process (Python, a Dask worker) held before or
+/// peaked at earlier.
+///
+/// [`MemoryMeter::start`] resets the process's peak (`VmHWM`) to the
+/// current resident size, so that the peak it reads later is the
+/// conversion's; where the reset is refused it falls back on the resident
+/// size (see [`MemoryMeter::peak`]). The reset is process-wide: a peak that
+/// something else in the process was tracking is lost, and conversions run
+/// at the same time in one process count each other's memory.
+#[derive(Clone, Copy, Debug)]
+pub struct MemoryMeter {
+    /// Resident bytes when the conversion started.
+    start_rss: u64,
+    /// The process's peak when the conversion started (after the reset).
+    start_peak: u64,
+    /// Whether the peak was reset to `start_rss`.
+    peak_reset: bool,
+}
+
+impl MemoryMeter {
+    /// Starts measuring: takes the resident size and resets the peak.
+    pub fn start() -> MemoryMeter {
+        let peak_reset = reset_peak_rss();
+        let start_rss = current_rss().unwrap_or(0);
+        MemoryMeter {
+            start_rss,
+            start_peak: peak_rss().unwrap_or(0),
+            peak_reset,
+        }
+    }
+
+    /// A meter that counts the whole process (nothing resident at its
+    /// start): what a conversion measured before meters existed.
+    pub fn whole_process() -> MemoryMeter {
+        MemoryMeter {
+            start_rss: 0,
+            start_peak: 0,
+            peak_reset: true,
+        }
+    }
+
+    /// Bytes that were resident when the conversion started (not counted).
+    pub fn start_rss(&self) -> u64 {
+        self.start_rss
+    }
+
+    /// The conversion's resident bytes now: the process's above its start.
+    pub fn resident(&self) -> Option<u64> {
+        Some(current_rss()?.saturating_sub(self.start_rss))
+    }
+
+    /// The conversion's peak resident bytes so far: the process's peak
+    /// above the resident size at the start. Where the peak could not be
+    /// reset and the process had peaked higher before the conversion (so
+    /// that its peak says nothing of the conversion), the conversion's
+    /// resident bytes now: the best figure there is, a lower bound.
+    pub fn peak(&self) -> Option<u64> {
+        let peak = peak_rss()?;
+        if self.peak_reset || peak > self.start_peak {
+            Some(peak.saturating_sub(self.start_rss))
+        } else {
+            self.resident()
+        }
+    }
+}
+
 /// Physical memory of the machine (`MemTotal` of `/proc/meminfo`), in bytes.
 pub fn total_memory() -> Option<u64> {
     let info = std::fs::read_to_string("/proc/meminfo").ok()?;

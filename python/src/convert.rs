@@ -47,7 +47,12 @@ pub(crate) fn convert_error(py: Python<'_>, e: &ConvertError) -> PyErr {
 /// `depth` is required for meshes; `colors` stores per-voxel colours
 /// (`color_error` packs them within that per-channel error, 0 = lossless);
 /// `solid` fills closed meshes; `memory_limit` is bytes or a size such as
-/// `"4G"` (default: 3/4 of physical memory); `bounds` is the root cube as
+/// `"4G"` (default: 3/4 of physical memory), the most the conversion itself
+/// may hold: the process's resident memory above what it held when the
+/// conversion started (what this process held or peaked at before, numpy
+/// arrays or an earlier conversion, is not counted; the process's peak,
+/// `VmHWM` on Linux, is reset at the start to measure it), and the returned
+/// `peak_rss` is that peak; `bounds` is the root cube as
 /// `(xmin, ymin, zmin, size)`; `point_radius` the radius of each point of a
 /// point cloud. An existing output is only replaced with `force=True`, and
 /// nothing is written when the conversion fails (`ConvertError`, whose

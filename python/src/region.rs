@@ -75,7 +75,8 @@ fn region_error(py: Python<'_>, e: &ConvertError) -> PyErr {
 /// required, so that every part has the same root cube. Returns a dict
 /// (`region`, `index`, `voxels`, `file_bytes`, `seconds`, and where the
 /// time went: `parse_seconds`, `bin_seconds` (meshes), `load_seconds` (all
-/// before voxelizing), `build_seconds`, `write_seconds`; `peak_rss`).
+/// before voxelizing), `build_seconds`, `write_seconds`; `peak_rss`, the
+/// build's own peak, which `memory_limit` bounds as in `convert`).
 /// With `cache_input` (the default) a mesh input stays in this process's
 /// memory for the next region of the same file (same path, size and
 /// modification time): a worker parses it once, not once per region;
@@ -151,7 +152,8 @@ pub fn convert_region<'py>(
 /// (E090 – E098, or the format's). `format_version` is the format of the
 /// whole-volume file: 2 (the default, as `dagtool merge`'s and `convert`'s)
 /// or 1; a merge that does not cover the whole root cube writes a part,
-/// which is always format 1. Returns a dict (`complete`, `cells`,
+/// which is always format 1. `memory_limit` bounds what the merge adds to
+/// this process's memory, as in `convert`. Returns a dict (`complete`, `cells`,
 /// `format_version` (of the file written), `voxels`, `file_bytes`,
 /// `input_bytes`, `seconds`).
 #[pyfunction]

@@ -77,6 +77,34 @@ def test_convert_errors_name_the_problem_and_write_nothing(sphere_obj, tmp_path)
         vdag.convert(sphere_obj, tmp_path / "m.vdag", depth=6, memory_limit="lots")
 
 
+def process_peak_bytes() -> int:
+    """This process's peak resident size (VmHWM), in bytes."""
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    raise AssertionError("no VmHWM in /proc/self/status")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads Linux's VmHWM")
+def test_memory_limit_counts_the_conversion_not_the_process_peak(sphere_obj, tmp_path):
+    """A process that peaked above the limit before (a large numpy array,
+    allocated and freed) still converts within a small limit that the
+    conversion itself fits: the limit is on the conversion's own memory,
+    whatever ran before it in this process."""
+    limit = 256 << 20
+    big = np.ones((limit + (128 << 20)) // 8)  # written, so resident
+    assert big[:: 1 << 12].sum() > 0
+    del big
+    assert process_peak_bytes() > limit + (64 << 20)
+    out = tmp_path / "small.vdag"
+    summary = vdag.convert(sphere_obj, out, depth=8, memory_limit=limit)
+    assert 0 < summary["peak_rss"] <= limit
+    unlimited = tmp_path / "default.vdag"
+    vdag.convert(sphere_obj, unlimited, depth=8)
+    assert out.read_bytes() == unlimited.read_bytes()
+
+
 def cli_render(dagtrace, path, out, *flags):
     run(dagtrace, "render", path, "-o", out, "--force", *flags)
     return np.asarray(PIL.open(out).convert("RGB"))

@@ -19,11 +19,17 @@
 //!   time from chunks of ranks read back in turn, and written out as they
 //!   are finished. Held: the stored order and the first sequential child
 //!   per node of the level (8 + 8 bytes), the counts, stabilisers and the
-//!   order of the level below (4 + 1 + 8 bytes per class below).
+//!   order of the level below (4 + 1 + 8 bytes per class below, the order
+//!   counted twice: it grows by pushes).
 //! - **Layout**: the records made a chunk at a time, twice (the widths'
 //!   histogram, then the bytes, which go to the scratch file as they come
 //!   with their CRC-32C). Held: the addresses by rank and position of the
 //!   level below and of this level (8 bytes each).
+//!
+//! Each pass sizes its chunks to the room it is given from what it holds
+//! ([`PassMemory`]: bytes whatever the chunks, buffers, bytes per item of a
+//! chunk); with its least chunks that is the encoder's least
+//! ([`least_for_merge`], [`least_for_order_and_layout`]).
 
 use std::cmp::Ordering as CmpOrdering;
 use std::collections::BinaryHeap;
@@ -172,6 +178,11 @@ impl RecordStarts {
     /// Bytes held.
     fn bytes(&self) -> u64 {
         12 * self.bits.len() as u64
+    }
+
+    /// Bytes held over a level of `units` words.
+    fn bytes_for(units: u64) -> u64 {
+        record_starts_bytes(units)
     }
 }
 
@@ -387,6 +398,146 @@ fn chunk_items(n: usize, room: u64, bytes: usize, most: usize) -> usize {
     fit.max(n.div_ceil(most)).max(MIN_CHUNK)
 }
 
+/// What an out-of-core pass over `n` items holds: `held` bytes whatever its
+/// chunks (its tables by node or class), `fixed` bytes of buffers, and
+/// `per_item` bytes per item of a chunk, with at most `most` chunks.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct PassMemory {
+    n: usize,
+    held: u64,
+    fixed: u64,
+    per_item: u64,
+    most: usize,
+}
+
+impl PassMemory {
+    /// Items per chunk within `room` bytes (see [`chunk_items`]).
+    fn chunk(&self, room: u64) -> usize {
+        let spare = room.saturating_sub(self.held + self.fixed);
+        chunk_items(self.n, spare, self.per_item as usize, self.most)
+    }
+
+    /// The least the pass holds, with its least chunks: more than a budget
+    /// below it, which the pass then exceeds.
+    pub(super) fn least(&self) -> u64 {
+        let chunk = self.n.div_ceil(self.most).max(MIN_CHUNK).min(self.n) as u64;
+        self.held + self.fixed + chunk * self.per_item
+    }
+}
+
+/// The buffers of an out-of-core merge of `n` forms of `bytes` bytes in
+/// the runs' file: the runs' write piece and read buffers (at most all the
+/// runs), the store's write piece and the pending ranked keys.
+fn merge_buffers(n: usize, bytes: usize) -> u64 {
+    (PIECE + bytes + MERGE_BUFFER.min(n * bytes) + PIECE + PENDING) as u64
+}
+
+/// The out-of-core merge of `n` leaves: a rank (4 bytes) and a reflection
+/// (1) per leaf and a stabiliser per class (pushed: at most 2 a leaf); a
+/// chunk's forms collected in parallel (3 × 16 bytes a form); the runs'
+/// write piece, read buffers and the pending masks, and the store's piece.
+pub(super) fn merge_leaves_memory(n: usize) -> PassMemory {
+    PassMemory {
+        n,
+        held: 7 * n as u64,
+        fixed: merge_buffers(n, LeafForm::BYTES),
+        per_item: 3 * std::mem::size_of::<LeafForm>() as u64,
+        most: MAX_RUNS,
+    }
+}
+
+/// The out-of-core merge of a level of `n` 1.0 nodes and `units` words:
+/// as the leaves' ([`merge_leaves_memory`]) with the record starts of the
+/// level, and per item of a chunk its start word (4) and its form collected
+/// in parallel (3 × 48). Not counted: the tables of the level below it
+/// reads.
+pub(super) fn merge_level_memory(n: usize, units: u64) -> PassMemory {
+    PassMemory {
+        n,
+        held: 7 * n as u64 + RecordStarts::bytes_for(units),
+        fixed: merge_buffers(n, <Form as Item>::BYTES),
+        per_item: 4 + 3 * std::mem::size_of::<Form>() as u64,
+        most: MAX_RUNS,
+    }
+}
+
+/// The out-of-core order of a level of `classes` classes over `below`:
+/// the stabilisers (1 byte), counts (4) and order (pushed: 2 × 8) of the
+/// classes below; the stored order and the first sequential children of
+/// this level (8 + 8); a chunk of keys as stored and one of ranked keys
+/// read back (72 + 72 bytes an item); the store's read and write pieces.
+pub(super) fn order_memory(classes: usize, below: usize) -> PassMemory {
+    PassMemory {
+        n: classes,
+        held: 21 * below as u64 + 16 * classes as u64,
+        fixed: 2 * PIECE as u64,
+        per_item: 2 * std::mem::size_of::<NodeKey>() as u64,
+        most: MAX_GATHER_CHUNKS,
+    }
+}
+
+/// The out-of-core layout of a level of `n` records: their addresses by
+/// position and by rank (8 + 8 bytes); per record of a chunk its key and
+/// first sequential child read back (72 + 8), its offset (8) and its bytes
+/// (pushed: twice at most [`RECORD_BYTES_MAX`]); the store's pieces. Not
+/// counted: what it reads of the level below, the stored order and counts.
+pub(super) fn layout_memory(n: usize) -> PassMemory {
+    PassMemory {
+        n,
+        held: 16 * n as u64,
+        fixed: 2 * PIECE as u64,
+        per_item: std::mem::size_of::<NodeKey>() as u64 + 8 + 8 + 2 * RECORD_BYTES_MAX,
+        most: MAX_RUNS,
+    }
+}
+
+/// The least the merge holds for `dag`, whatever the budget: the largest,
+/// over the levels, of what its out-of-core pass holds with its least
+/// chunks, with the tables of the level below it reads (a stabiliser for
+/// each of at most as many classes as 1.0 nodes), and of the root's merge
+/// in memory.
+pub(super) fn least_for_merge(dag: &Dag<'_>) -> u64 {
+    let levels = dag.levels();
+    let leaf_level = usize::from(dag.leaf_level());
+    let n = |l: usize| levels[l].node_count as usize;
+    let mut least = merge_leaves_memory(n(leaf_level)).least();
+    for l in 0..leaf_level {
+        let below = &levels[l + 1];
+        // The table by node of the level below as an out-of-core merge
+        // leaves it (5 bytes a node) and its classes' stabilisers.
+        let starts_below = if below.is_leaf {
+            0
+        } else {
+            RecordStarts::bytes_for(below.units())
+        };
+        let slots_below = 5 * n(l + 1) as u64 + starts_below + n(l + 1) as u64;
+        least = least.max(if l == 0 {
+            merge_work(dag, 0)
+        } else {
+            slots_below + merge_level_memory(n(l), levels[l].units()).least()
+        });
+    }
+    least
+}
+
+/// The least the order and the layout hold for `dag` whose levels have
+/// `classes` classes each, whatever the budget: the largest, over the
+/// levels, of what their out-of-core passes hold with their least chunks
+/// (the layout with the addresses of the level below it reads, and the
+/// stored order and counts), and of the leaves' layout in memory.
+pub(super) fn least_for_order_and_layout(dag: &Dag<'_>, classes: &[usize]) -> u64 {
+    let leaf_level = usize::from(dag.leaf_level());
+    let mut least = leaf_layout_work(classes[leaf_level]);
+    for l in 0..leaf_level {
+        let (c, below) = (classes[l], classes[l + 1]);
+        // The addresses below by rank and, above a node level, by position.
+        let addresses_below = if l + 1 == leaf_level { 8 } else { 16 } * below as u64;
+        let layout = addresses_below + 12 * c as u64 + layout_memory(c).least();
+        least = least.max(order_memory(c, below).least()).max(layout);
+    }
+    least
+}
+
 /// Sorts the forms of `n` 1.0 nodes, made a `chunk` of ordinals at a time
 /// by `forms_of`: each chunk sorted in parallel and, when there is more
 /// than one, written as a run to a scratch file in `dir`, the runs merged.
@@ -483,15 +634,7 @@ pub(super) fn merge_leaves_external(
     })?;
     let n = n as usize;
     let reflect = leaf_level > 0;
-    // Held: a rank and a reflection per leaf, a stabiliser per class.
-    let held = 6 * n as u64;
-    // A chunk's forms twice (collected in pieces, then joined).
-    let chunk = chunk_items(
-        n,
-        room.saturating_sub(held),
-        2 * std::mem::size_of::<LeafForm>(),
-        MAX_RUNS,
-    );
+    let chunk = merge_leaves_memory(n).chunk(room);
     let mut rank = vec![0u32; n];
     let mut reflection = vec![0u8; n];
     let mut stabs = Vec::new();
@@ -574,17 +717,7 @@ pub(super) fn merge_level_external(
             format!("level {level}: {units} words are more than the encoder numbers"),
         )
     })?;
-    // Held: a rank and a reflection per node, a stabiliser per class, the
-    // start index (about 3/16 of a byte per word).
-    let held = 6 * n as u64 + units / 8 + units / 16;
-    // A chunk's starts and its forms twice (collected in pieces, then
-    // joined).
-    let chunk = chunk_items(
-        n,
-        room.saturating_sub(held),
-        2 * std::mem::size_of::<Form>() + 4,
-        MAX_RUNS,
-    );
+    let chunk = merge_level_memory(n, units).chunk(room);
     let mut index = RecordStarts::new(units);
     let mut word = 0u64;
     let mut rank = vec![0u32; n];
@@ -701,16 +834,8 @@ pub(super) fn order_level_external(
 ) -> Result<Ordered, ConvertError> {
     let child_stabs = store.take(child_stabs)?;
     let classes = keys.len();
-    // Held: the stabilisers, counts and order below; the stored order and
-    // first sequential children here.
-    let held = 13 * below as u64 + 16 * classes as u64;
     // A chunk of positions (out) and one of ranks (read) at a time.
-    let chunk = chunk_items(
-        classes,
-        room.saturating_sub(held) / 2,
-        std::mem::size_of::<NodeKey>(),
-        MAX_GATHER_CHUNKS,
-    );
+    let chunk = order_memory(classes, below).chunk(room);
     let counts: Vec<AtomicU32> = (0..below).map(|_| AtomicU32::new(0)).collect();
     for start in (0..classes).step_by(chunk) {
         let part = store.read_range(&keys, start..(start + chunk).min(classes))?;
@@ -783,15 +908,8 @@ pub(super) fn layout_level_external(
     room: u64,
 ) -> Result<LaidOut, ConvertError> {
     let n = keys.len();
-    // Held: the addresses by position and rank of this level.
-    let held = 16 * n as u64;
     // A chunk's keys, firsts, records and their offsets.
-    let chunk = chunk_items(
-        n,
-        room.saturating_sub(held),
-        std::mem::size_of::<NodeKey>() + 8 + 2 * (4 + 9 * 5) + 8,
-        MAX_RUNS,
-    );
+    let chunk = layout_memory(n).chunk(room);
     let mut hist = [0u64; 65];
     for start in (0..n).step_by(chunk) {
         let range = start..(start + chunk).min(n);

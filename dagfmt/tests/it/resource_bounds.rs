@@ -476,3 +476,111 @@ fn transport_output_stays_under_the_limit_without_a_declared_size() {
     // The 128 KiB read chunk, the output (at most the limit) and a message.
     assert!(peak < (128 << 10) + 2 * 5000 + 4096, "{peak} bytes");
 }
+
+/// Voxels of a cube of side 2^`depth` set at random (about one in three): its
+/// leaves, and the nodes above them, are nearly all distinct, so that the
+/// 2.0 encoder's estimates (which count a class per 1.0 node, the most there
+/// can be) meet the passes' real tables.
+fn dense_random_dag(depth: u8) -> Vec<u8> {
+    DagBuilder::from_fn(depth, AttributeKind::VoxelCount, |x, y, z| {
+        // SplitMix64's finaliser of the coordinates.
+        let mut h = (u64::from(x) << 42 | u64::from(y) << 21 | u64::from(z))
+            .wrapping_add(0x9E37_79B9_7F4A_7C15);
+        h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        (h ^ (h >> 31)) % 3 == 0
+    })
+    .unwrap()
+    .to_bytes()
+}
+
+/// The encoder's heap peak over `dag` with `options` on one thread (so that
+/// every allocation of its parallel steps is on the thread measured), and
+/// how many passes went out of core.
+fn encoder_peak(dag: &Dag<'_>, options: &dagfmt::v2enc::EncodeOptions) -> (usize, usize) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let (passes, peak) = pool.install(|| {
+        peak_heap(|| {
+            dagfmt::v2enc::encode_levels(dag, options)
+                .unwrap()
+                .external_passes()
+        })
+    });
+    (peak, passes)
+}
+
+/// Room for what the estimates leave out: the store's pieces written to and
+/// read from the scratch file (1 MiB each), the small per-chunk vectors.
+const ENCODER_SLACK: usize = 3 << 20;
+
+#[test]
+fn the_2_0_encoder_s_working_set_estimate_bounds_its_peak_closely() {
+    let bytes = dense_random_dag(8);
+    let dag = Dag::open(&bytes).unwrap();
+    let estimate = dagfmt::v2enc::in_memory_working_set(&dag) as usize;
+    let dir = tempfile::tempdir().unwrap();
+    // A budget of the estimate: every pass in memory, every finished table
+    // in the scratch file, so the peak is the largest pass's.
+    let options = dagfmt::v2enc::EncodeOptions {
+        memory_budget: Some(estimate as u64),
+        refuse_below_least: true,
+        scratch_dir: Some(dir.path().to_path_buf()),
+    };
+    let (peak, passes) = encoder_peak(&dag, &options);
+    eprintln!(
+        "in memory: estimate {estimate}, peak {peak}; nodes {:?}",
+        dag.levels()
+            .iter()
+            .map(|l| l.node_count)
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(
+        passes, 0,
+        "a budget of the estimate keeps every pass in memory"
+    );
+    assert!(
+        peak <= estimate + ENCODER_SLACK,
+        "peak {peak} over the estimate {estimate}"
+    );
+    // Close: the estimate counts vectors grown by doubling at twice their
+    // bytes, which they reach only at a power of two; no more than a fifth
+    // over the peak.
+    assert!(
+        estimate <= peak + peak / 5,
+        "the estimate {estimate} over-counts the peak {peak}"
+    );
+}
+
+#[test]
+fn the_2_0_encoder_s_least_memory_bounds_its_peak_out_of_core() {
+    let bytes = dense_random_dag(8);
+    let dag = Dag::open(&bytes).unwrap();
+    let least = dagfmt::v2enc::least_memory(&dag) as usize;
+    let dir = tempfile::tempdir().unwrap();
+    let options = |budget: u64, refuse_below_least| dagfmt::v2enc::EncodeOptions {
+        memory_budget: Some(budget),
+        refuse_below_least,
+        scratch_dir: Some(dir.path().to_path_buf()),
+    };
+    // No budget: every pass but the root's merge and the leaves' layout out
+    // of core, with its least chunks.
+    let (peak, passes) = encoder_peak(&dag, &options(0, false));
+    eprintln!("out of core: least {least}, peak {peak}");
+    assert_eq!(passes, 3 * usize::from(dag.leaf_level()));
+    assert!(peak <= least + ENCODER_SLACK, "peak {peak} over {least}");
+    assert!(least <= dagfmt::v2enc::in_memory_working_set(&dag) as usize);
+    // Asked to, the encoder refuses such a budget, naming what it needs (a
+    // class per 1.0 node at most).
+    match dagfmt::v2enc::encode_levels(&dag, &options(0, true)) {
+        Err(dagfmt::v2file::ConvertError::Budget { least: l, budget }) => {
+            assert_eq!(budget, 0);
+            assert!(0 < l && l as usize <= least, "{l} against {least}");
+        }
+        other => panic!("not refused: {:?}", other.map(|e| e.external_passes())),
+    }
+    // And takes the least it names.
+    dagfmt::v2enc::encode_levels(&dag, &options(least as u64, true)).unwrap();
+}

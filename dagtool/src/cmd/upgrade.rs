@@ -61,8 +61,8 @@ pub fn upgrade(
 }
 
 /// Writes the 2.0 file of the 1.0 file `input` to `output`, encoded within
-/// what is left of the memory `limit` (the process's resident memory, the
-/// input file and a margin taken; the encoder's tables past it, and its
+/// what is left of the memory `limit` (the resident memory that `meter`
+/// counts, the input file and a margin taken; the encoder's tables past it, and its
 /// passes over levels whose working set does not fit, go through a scratch
 /// file in `scratch_dir`), as `dagtool convert` encodes it: the bytes are
 /// those of [`upgrade`].
@@ -71,6 +71,7 @@ pub fn upgrade_within(
     output: &Path,
     force: bool,
     limit: u64,
+    meter: &crate::sysinfo::MemoryMeter,
     scratch_dir: &Path,
 ) -> Result<Upgraded, ConvertError> {
     crate::output::check_output(output, force)?;
@@ -80,12 +81,11 @@ pub fn upgrade_within(
         |e: &dyn std::fmt::Display| ConvertError::Input(format!("{}: {e}", input.display()));
     let dag = dagfmt::Dag::open(bytes).map_err(|e| named(&e))?;
     let budget = limit.saturating_sub(
-        crate::sysinfo::current_rss().unwrap_or(0)
-            + bytes.len() as u64
-            + (limit / 16).max(24 << 20),
+        meter.resident().unwrap_or(0) + bytes.len() as u64 + (limit / 16).max(24 << 20),
     );
     let options = dagfmt::v2enc::EncodeOptions {
         memory_budget: Some(budget),
+        refuse_below_least: false,
         scratch_dir: Some(scratch_dir.to_path_buf()),
     };
     let mut failure = None;

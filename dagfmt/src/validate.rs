@@ -855,8 +855,9 @@ trait ChildLevel: Sync {
     /// Bytes of the tables [`ChildLevel::visit`] reads at positions the
     /// pointers choose: whether they stay in the cache.
     fn table_bytes(&self) -> u64;
-    /// Reads the tables' entries of units `first..end` in order, a byte a
-    /// cache line, to bring them into the cache (no effect on results).
+    /// Asks for the cache lines of the tables' entries of units
+    /// `first..end`, in order, to bring them into the cache (a hint: no
+    /// effect on results).
     fn warm(&self, first: u64, end: u64);
     /// "word" or "leaf", for messages.
     const UNIT: &'static str;
@@ -977,15 +978,15 @@ impl<T: CountSlot + Sync> ChildLevel for NodeLevel<T> {
     const PARTITIONED: bool = size_of::<T>() <= 4;
 }
 
-/// Reads the cache lines of `table[first..end]` (clamped to the table) in
-/// order, one entry a line, so that the hardware streams them in.
+/// Asks for the cache lines of `table[first..end]` (clamped to the table)
+/// in order, one entry a line: a bucket's slice arrives sequentially instead
+/// of line by line as its random reads reach it.
 #[inline(never)]
 fn warm_lines<T>(table: &[T], first: u64, end: u64) {
     let end = table.len().min(usize::try_from(end).unwrap_or(usize::MAX));
     let first = end.min(usize::try_from(first).unwrap_or(usize::MAX));
     let step = (64 / size_of::<T>().max(1)).max(1);
     for entry in table[first..end].iter().step_by(step) {
-        std::hint::black_box(std::ptr::from_ref(entry).cast::<u8>());
         prefetch(entry);
     }
 }

@@ -42,7 +42,6 @@ pub mod morton;
 #[cfg(feature = "output")]
 pub mod output;
 pub mod packed_colors;
-mod pointer_partition;
 pub mod reader;
 pub mod stats;
 pub mod symmetry;

@@ -14,12 +14,7 @@
 //! size) plus one subtree voxel count per two words of the
 //! level (16, 32 or 64 bits as the level's depth needs: at most the level's
 //! size). Only two levels' indexes are held at a time; nothing is allocated
-//! per node. Where the level below's indexes are larger than the cache
-//! (4 MiB), each part of the walk visits its pointers a
-//! chunk at a time, partitioned by target (`pointer_partition`), so that
-//! their random reads stay in the cache: 4 bytes per pointer of a chunk,
-//! at most 2^25 pointers (128 MiB) per part, held while the
-//! level is walked.
+//! per node.
 //!
 //! # What is checked, in order
 //!
@@ -78,7 +73,6 @@
 use crate::error::{ErrorCode, FormatError};
 use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE, SectionKind};
 use crate::packed_colors;
-use crate::pointer_partition::{self, Partition};
 use crate::reader::{self, LayoutChecks, SectionEntry};
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicU8, AtomicU64, Ordering::Relaxed};
@@ -488,16 +482,6 @@ struct Walk {
     min_split_bytes: usize,
     /// Records framed from a guessed split point ([`SYNC_RECORDS`]).
     sync_records: usize,
-    /// Pointers into a child level whose tables take at least this many
-    /// bytes are partitioned ([`Partitioned`], [`PARTITION_TABLE_BYTES`]).
-    partition_table_bytes: u64,
-    /// The slice of the child's tables one bucket covers ([`SLICE_BYTES`]).
-    slice_bytes: u64,
-    /// Pointers partitioned at a time by each part ([`CHUNK_POINTERS`]).
-    chunk_pointers: usize,
-    /// Pointers followed directly into a child level whose tables take at
-    /// least this many bytes are prefetched ahead ([`LOOKAHEAD_TABLE_BYTES`]).
-    lookahead_table_bytes: u64,
 }
 
 impl Walk {
@@ -513,34 +497,9 @@ impl Walk {
             parts,
             min_split_bytes: PARALLEL_LEVEL_BYTES,
             sync_records: SYNC_RECORDS,
-            partition_table_bytes: PARTITION_TABLE_BYTES,
-            slice_bytes: SLICE_BYTES,
-            chunk_pointers: CHUNK_POINTERS,
-            lookahead_table_bytes: LOOKAHEAD_TABLE_BYTES,
         }
     }
 }
-
-/// Pointers each part of a level's walk partitions at a time (4 bytes
-/// each: 128 MiB a part). Each chunk reads the slices of the child's tables
-/// its pointers fall in once, so a chunk should hold many more pointers than
-/// the tables have cache lines (at depth 16, 2.7 million lines for the
-/// largest child level).
-const CHUNK_POINTERS: usize = 1 << 25;
-
-/// Child tables from which a level's pointers are partitioned: larger than
-/// the L2 cache (2 MiB a core on machine J), so that following pointers
-/// directly misses it.
-const PARTITION_TABLE_BYTES: u64 = 4 << 20;
-
-/// The slice of the child's tables one bucket of the partition covers:
-/// small enough to stay in the L2 cache while the bucket is resolved.
-const SLICE_BYTES: u64 = 512 << 10;
-
-/// Child tables from which the direct walk prefetches its pointers'
-/// targets: smaller ones stay in the cache, and the second framing would
-/// cost more than it hides.
-const LOOKAHEAD_TABLE_BYTES: u64 = 1 << 20;
 
 /// Whether the CPU has the POPCNT instruction (the check is cached by std).
 #[cfg(target_arch = "x86_64")]
@@ -852,19 +811,8 @@ trait ChildLevel: Sync {
     fn clear_marks(&self);
     /// Asks for the cache lines [`ChildLevel::visit`] of `p` will read.
     fn prefetch(&self, p: u32);
-    /// Bytes of the tables [`ChildLevel::visit`] reads at positions the
-    /// pointers choose: whether they stay in the cache.
-    fn table_bytes(&self) -> u64;
-    /// Asks for the cache lines of the tables' entries of units
-    /// `first..end`, in order, to bring them into the cache (a hint: no
-    /// effect on results).
-    fn warm(&self, first: u64, end: u64);
     /// "word" or "leaf", for messages.
     const UNIT: &'static str;
-    /// Whether the pointers into this level may be partitioned
-    /// ([`Partitioned`]): every [`Visit`] of a pointer below
-    /// [`ChildLevel::units`] has a [`result code`](visit_code).
-    const PARTITIONED: bool;
 }
 
 /// Pointers into a level that was not walked lead to unknown counts.
@@ -881,14 +829,7 @@ impl ChildLevel for Unchecked {
     fn clear_marks(&self) {}
     #[inline(always)]
     fn prefetch(&self, _p: u32) {}
-    fn table_bytes(&self) -> u64 {
-        0
-    }
-    fn warm(&self, _first: u64, _end: u64) {}
     const UNIT: &'static str = "unit";
-    // Its pointers are all out of range of its 0 units, yet lead to
-    // unknown counts.
-    const PARTITIONED: bool = false;
 }
 
 impl ChildLevel for LeafLevel {
@@ -915,14 +856,7 @@ impl ChildLevel for LeafLevel {
             c.store(c.load(Relaxed) & LEAF_COUNT_MASK, Relaxed);
         }
     }
-    fn table_bytes(&self) -> u64 {
-        self.counts.len() as u64
-    }
-    fn warm(&self, first: u64, end: u64) {
-        warm_lines(&self.counts, first, end);
-    }
     const UNIT: &'static str = "leaf";
-    const PARTITIONED: bool = true;
 }
 
 impl<T: CountSlot + Sync> ChildLevel for NodeLevel<T> {
@@ -965,169 +899,7 @@ impl<T: CountSlot + Sync> ChildLevel for NodeLevel<T> {
             r.store(0, Relaxed);
         }
     }
-    fn table_bytes(&self) -> u64 {
-        (self.counts.len() * size_of::<T>() + self.blocks.len() * size_of::<WordBlock>()) as u64
-    }
-    fn warm(&self, first: u64, end: u64) {
-        warm_lines(&self.counts, first >> 1, end.div_ceil(2));
-        warm_lines(&self.blocks, first >> 6, end.div_ceil(64));
-    }
     const UNIT: &'static str = "word";
-    // Counts of 16 or 32 bits: a count in 32-bit slots is at most 2^30
-    // (`OwnCounts::new`), below the codes of `visit_code`.
-    const PARTITIONED: bool = size_of::<T>() <= 4;
-}
-
-/// Asks for the cache lines of `table[first..end]` (clamped to the table)
-/// in order, one entry a line: a bucket's slice arrives sequentially instead
-/// of line by line as its random reads reach it.
-#[inline(never)]
-fn warm_lines<T>(table: &[T], first: u64, end: u64) {
-    let end = table.len().min(usize::try_from(end).unwrap_or(usize::MAX));
-    let first = end.min(usize::try_from(first).unwrap_or(usize::MAX));
-    let step = (64 / size_of::<T>().max(1)).max(1);
-    for entry in table[first..end].iter().step_by(step) {
-        prefetch(entry);
-    }
-}
-
-/// How one part of a level's walk learns what its pointers lead to.
-trait Targets {
-    /// What pointer `p` leads to; its target is marked referenced (here or
-    /// before the walk).
-    fn visit(&mut self, p: u32) -> Visit;
-    /// Asks for the cache lines [`Targets::visit`] of `p` will read.
-    fn prefetch(&self, p: u32);
-    /// Called at the start `pos` of each record, before its pointers are
-    /// visited.
-    fn record(&mut self, pos: usize);
-    /// Whether the walk frames records [`PREFETCH_RECORDS`] ahead to call
-    /// [`Targets::prefetch`] for their pointers.
-    const LOOKAHEAD: bool;
-}
-
-/// Each pointer followed into the child level as the walk reaches it, by
-/// part `part` of the walk; with `LOOKAHEAD` when the child's tables miss
-/// the cache.
-struct Direct<'a, C, const LOOKAHEAD: bool> {
-    child: &'a C,
-    part: usize,
-}
-
-impl<C: ChildLevel, const LOOKAHEAD: bool> Targets for Direct<'_, C, LOOKAHEAD> {
-    #[inline(always)]
-    fn visit(&mut self, p: u32) -> Visit {
-        self.child.visit(p, self.part)
-    }
-    #[inline(always)]
-    fn prefetch(&self, p: u32) {
-        self.child.prefetch(p);
-    }
-    #[inline(always)]
-    fn record(&mut self, _pos: usize) {}
-    const LOOKAHEAD: bool = LOOKAHEAD;
-}
-
-/// The pointers of part `part` of the walk (records `..to` of level
-/// `sec`, width `W`) visited ahead of the walk a chunk at a time
-/// (`Walk::partition_table_bytes`): when the walk reaches a chunk's first record,
-/// the chunk's pointers below `units` are partitioned by target and each
-/// bucket resolved against its slice of the child's tables; the walk then
-/// reads the visits back in its own order.
-struct Partitioned<'a, C, const W: usize> {
-    child: &'a C,
-    part: usize,
-    sec: &'a [u8],
-    to: usize,
-    /// The child's units: pointers at or past them are not partitioned.
-    units: u64,
-    /// Pointers partitioned at a time (at least: whole records).
-    chunk_pointers: usize,
-    /// Buckets of 2^`shift` units.
-    shift: u32,
-    /// The chunk's visits; made at the first chunk.
-    partition: Option<Partition>,
-    /// Where the chunk's records end: the next chunk's first record.
-    chunk_end: usize,
-}
-
-impl<C: ChildLevel, const W: usize> Partitioned<'_, C, W> {
-    /// Partitions and resolves the chunk whose first record starts at `pos`.
-    #[cold]
-    #[inline(never)]
-    fn next_chunk(&mut self, pos: usize) {
-        let (sec, units, to) = (self.sec, self.units, self.to);
-        let (shift, chunk_pointers) = (self.shift, self.chunk_pointers);
-        let partition = self.partition.get_or_insert_with(|| {
-            let mut partition = Partition::new(units, shift);
-            // At most one pointer per W bytes; capacity is only address
-            // space until written.
-            let expected = chunk_pointers.min(to.saturating_sub(pos) / W);
-            partition.reserve(expected.div_ceil(partition.buckets()) * 5 / 4 + 16);
-            partition
-        });
-        partition.clear();
-        self.chunk_end = partition_chunk::<W>(sec, pos, to, units, chunk_pointers, partition);
-        let (child, part) = (self.child, self.part);
-        partition.resolve(
-            |first, end| child.warm(first, end),
-            |p| visit_code(child.visit(p, part)),
-        );
-    }
-}
-
-impl<C: ChildLevel, const W: usize> Targets for Partitioned<'_, C, W> {
-    #[inline(always)]
-    fn visit(&mut self, p: u32) -> Visit {
-        if u64::from(p) >= self.units {
-            return Visit::OutOfRange;
-        }
-        // The walk meets the pointers the chunk was filled with, in the
-        // same order: a result is always there.
-        match self.partition.as_mut().and_then(|b| b.next(p)) {
-            Some(code) => code_visit(code),
-            None => Visit::Count(UNKNOWN),
-        }
-    }
-    #[inline(always)]
-    fn prefetch(&self, _p: u32) {}
-    #[inline(always)]
-    fn record(&mut self, pos: usize) {
-        if pos == self.chunk_end {
-            self.next_chunk(pos);
-        }
-    }
-    const LOOKAHEAD: bool = false;
-}
-
-/// [`visit_code`] of [`Visit::NotAtNode`].
-const CODE_NOT_AT_NODE: u32 = u32::MAX;
-/// [`visit_code`] of [`Visit::OutOfRange`].
-const CODE_OUT_OF_RANGE: u32 = u32::MAX - 1;
-/// [`visit_code`] of an [`UNKNOWN`] count; smaller codes are counts.
-const CODE_UNKNOWN: u32 = u32::MAX - 2;
-
-/// A visit in 32 bits, for the partition's buckets. Counts of the levels
-/// [`ChildLevel::PARTITIONED`] allows are below [`CODE_UNKNOWN`] (a larger
-/// one would become unknown).
-#[inline(always)]
-fn visit_code(visit: Visit) -> u32 {
-    match visit {
-        Visit::Count(c) => u32::try_from(c).map_or(CODE_UNKNOWN, |c| c.min(CODE_UNKNOWN)),
-        Visit::OutOfRange => CODE_OUT_OF_RANGE,
-        Visit::NotAtNode => CODE_NOT_AT_NODE,
-    }
-}
-
-/// The visit [`visit_code`] gave `code`.
-#[inline(always)]
-fn code_visit(code: u32) -> Visit {
-    match code {
-        CODE_NOT_AT_NODE => Visit::NotAtNode,
-        CODE_OUT_OF_RANGE => Visit::OutOfRange,
-        CODE_UNKNOWN => Visit::Count(UNKNOWN),
-        c => Visit::Count(u64::from(c)),
-    }
 }
 
 /// Checks the leaf masks (E048) and indexes the leaf level.
@@ -1284,9 +1056,8 @@ fn split_points<const W: usize>(sec: &[u8], parts: usize, sync_records: usize) -
 /// next part's start or the level's end), numbered from 0 (the part's first
 /// record number is known once the part before has ended), with the count
 /// slots and record-start blocks its records own.
-struct Range<'a, V> {
-    /// What the part's pointers lead to.
-    targets: V,
+struct Range<'a> {
+    part: usize,
     from: usize,
     to: usize,
     /// Slots from `slot_base` on.
@@ -1339,37 +1110,29 @@ fn walk_parts<const W: usize, C: ChildLevel>(
     let mut blocks: Vec<WordBlock> = std::iter::repeat_with(WordBlock::default)
         .take(len.div_ceil(4).div_ceil(64))
         .collect();
-    let mut splits = if walk.parts > 1 && len >= walk.min_split_bytes {
+    let splits = if walk.parts > 1 && len >= walk.min_split_bytes {
         split_points::<W>(view.bytes, walk.parts.min(MAX_PARTS), walk.sync_records)
     } else {
         Vec::new()
     };
-    let table_bytes = child.table_bytes();
-    let index = (&mut counts, &mut blocks);
-    let ends = if C::PARTITIONED && table_bytes >= walk.partition_table_bytes {
-        // The pointers are partitioned a chunk at a time: the child's
-        // tables are larger than the cache.
-        let units = child.units();
-        let shift = pointer_partition::shift_for(units, table_bytes, walk.slice_bytes);
-        let partitioned = |part, from, to| Partitioned::<C, W> {
-            child,
-            part,
-            sec: view.bytes,
-            to,
-            units,
-            chunk_pointers: walk.chunk_pointers,
-            shift,
-            partition: None,
-            chunk_end: from,
-        };
-        walk_with::<W, C, _>(f, view, child, attributes, index, &mut splits, partitioned)?
-    } else if table_bytes >= walk.lookahead_table_bytes {
-        let direct = |part, _, _| Direct::<C, true> { child, part };
-        walk_with::<W, C, _>(f, view, child, attributes, index, &mut splits, direct)?
-    } else {
-        let direct = |part, _, _| Direct::<C, false> { child, part };
-        walk_with::<W, C, _>(f, view, child, attributes, index, &mut splits, direct)?
-    };
+    let reported_before = f.errors.len();
+    let mut ends = walk_split::<W, C>(
+        f,
+        view,
+        child,
+        attributes,
+        &mut counts,
+        &mut blocks,
+        &splits,
+    )?;
+    if ends.len() < splits.len() + 1 {
+        // A split was not confirmed: undo and walk the level in one part.
+        f.errors.truncate(reported_before);
+        child.clear_marks();
+        counts.reset();
+        blocks.iter_mut().for_each(|b| *b = WordBlock::default());
+        ends = walk_split::<W, C>(f, view, child, attributes, &mut counts, &mut blocks, &[])?;
+    }
     let block_cuts = splits.iter().map(|&s| (s / 4).div_ceil(64));
     for (end, cut) in ends.iter().skip(1).zip(block_cuts) {
         if end.head != 0 {
@@ -1406,125 +1169,6 @@ fn walk_parts<const W: usize, C: ChildLevel>(
     })
 }
 
-/// The count slots and record-start blocks of the level being walked.
-type Index<'a> = (&'a mut OwnCounts, &'a mut Vec<WordBlock>);
-
-/// Walks a level in the parts `splits` start, part `p` (records
-/// `from..to`) learning what its pointers lead to from `targets(p, from,
-/// to)`. When a split is not confirmed (a corrupted level), what the parts
-/// did is undone, `splits` is emptied and the level is walked again in one
-/// part.
-#[inline(always)]
-fn walk_with<const W: usize, C: ChildLevel, V: Targets + Send>(
-    f: &mut Findings,
-    view: &LevelView<'_>,
-    child: &C,
-    attributes: AttributeRule,
-    (counts, blocks): Index<'_>,
-    splits: &mut Vec<usize>,
-    targets: impl Fn(usize, usize, usize) -> V,
-) -> Result<Vec<RangeEnd>, Stop> {
-    let len = view.bytes.len();
-    let reported_before = f.errors.len();
-    let parts = (0..=splits.len())
-        .map(|p| {
-            let from = p.checked_sub(1).map_or(0, |q| splits[q]);
-            targets(p, from, splits.get(p).copied().unwrap_or(len))
-        })
-        .collect();
-    let ends = walk_split::<W, C, _>(f, view, child, attributes, counts, blocks, splits, parts)?;
-    if ends.len() == splits.len() + 1 {
-        return Ok(ends);
-    }
-    // A split was not confirmed: undo and walk the level in one part.
-    f.errors.truncate(reported_before);
-    child.clear_marks();
-    counts.reset();
-    blocks.iter_mut().for_each(|b| *b = WordBlock::default());
-    splits.clear();
-    walk_split::<W, C, _>(
-        f,
-        view,
-        child,
-        attributes,
-        counts,
-        blocks,
-        &[],
-        vec![targets(0, 0, len)],
-    )
-}
-
-/// Frames the records from `from` (before `to`) of a level of pointer
-/// width `W` as [`walk_range_inline`] does, partitioning their pointers
-/// below `units`, until `max` pointers or more are held; returns where it
-/// stopped: `to` or past, the first record after the chunk, or a record that
-/// runs past the level's end.
-fn partition_chunk<const W: usize>(
-    sec: &[u8],
-    from: usize,
-    to: usize,
-    units: u64,
-    max: usize,
-    partition: &mut Partition,
-) -> usize {
-    #[cfg(target_arch = "x86_64")]
-    if has_popcnt() {
-        // SAFETY: the CPU has the POPCNT instruction (checked just above),
-        // the only feature `partition_chunk_popcnt` is compiled to use.
-        return unsafe { partition_chunk_popcnt::<W>(sec, from, to, units, max, partition) };
-    }
-    partition_chunk_inline::<W>(sec, from, to, units, max, partition)
-}
-
-/// [`partition_chunk_inline`] compiled with the POPCNT instruction.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "popcnt")]
-fn partition_chunk_popcnt<const W: usize>(
-    sec: &[u8],
-    from: usize,
-    to: usize,
-    units: u64,
-    max: usize,
-    partition: &mut Partition,
-) -> usize {
-    partition_chunk_inline::<W>(sec, from, to, units, max, partition)
-}
-
-#[inline(always)]
-fn partition_chunk_inline<const W: usize>(
-    sec: &[u8],
-    from: usize,
-    to: usize,
-    units: u64,
-    max: usize,
-    partition: &mut Partition,
-) -> usize {
-    let mut pos = from;
-    let mut held = 0;
-    while pos < to && held < max {
-        let Some(&mask) = sec.get(pos) else {
-            return pos;
-        };
-        let pointer_bytes = mask.count_ones() as usize * W;
-        let size = 4 + pointer_bytes.next_multiple_of(4);
-        let Some(pointers) = sec.get(pos + 4..pos + size) else {
-            return pos;
-        };
-        for chunk in pointers[..pointer_bytes].chunks_exact(W) {
-            let mut p = 0u32;
-            for (j, &b) in chunk.iter().enumerate() {
-                p |= u32::from(b) << (8 * j);
-            }
-            if u64::from(p) < units {
-                partition.push(p);
-            }
-        }
-        held += pointer_bytes / W;
-        pos += size;
-    }
-    pos
-}
-
 /// Walks a level in the parts that `splits` start, the first on this thread
 /// and each other on a thread of its own (or after the first where no thread
 /// can be started), and reports their findings in order. Returns how each
@@ -1532,7 +1176,7 @@ fn partition_chunk_inline<const W: usize>(
 /// confirm (then fewer than the parts).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn walk_split<const W: usize, C: ChildLevel, V: Targets + Send>(
+fn walk_split<const W: usize, C: ChildLevel>(
     f: &mut Findings,
     view: &LevelView<'_>,
     child: &C,
@@ -1540,7 +1184,6 @@ fn walk_split<const W: usize, C: ChildLevel, V: Targets + Send>(
     counts: &mut OwnCounts,
     blocks: &mut [WordBlock],
     splits: &[usize],
-    targets: Vec<V>,
 ) -> Result<Vec<RangeEnd>, Stop> {
     let len = view.bytes.len();
     // A part owns the slots and blocks from its first record's on; a block
@@ -1548,19 +1191,18 @@ fn walk_split<const W: usize, C: ChildLevel, V: Targets + Send>(
     // part's (its starts come back as the head).
     let slot_cuts: Vec<usize> = splits.iter().map(|s| s / 8).collect();
     let block_cuts: Vec<usize> = splits.iter().map(|s| (s / 4).div_ceil(64)).collect();
-    let mut ranges: Vec<Range<'_, V>> = counts
+    let mut ranges: Vec<Range<'_>> = counts
         .split(&slot_cuts)
         .into_iter()
         .zip(split_at_cuts(blocks, &block_cuts))
-        .zip(targets)
         .enumerate()
-        .map(|(p, ((slots, blocks), targets))| {
+        .map(|(p, (slots, blocks))| {
             let (from, slot_base, block_base) = match p.checked_sub(1) {
                 None => (0, 0, 0),
                 Some(q) => (splits[q], slot_cuts[q], block_cuts[q]),
             };
             Range {
-                targets,
+                part: p,
                 from,
                 to: splits.get(p).copied().unwrap_or(len),
                 slots,
@@ -1572,23 +1214,21 @@ fn walk_split<const W: usize, C: ChildLevel, V: Targets + Send>(
         .collect();
     let first = ranges.remove(0);
     if ranges.is_empty() {
-        return Ok(vec![walk_range::<W, C, V>(
-            f, view, child, attributes, first,
-        )?]);
+        return Ok(vec![walk_range::<W, C>(f, view, child, attributes, first)?]);
     }
     let max = f.max.saturating_sub(f.errors.len());
-    let jobs: Vec<std::sync::Mutex<Option<Range<'_, V>>>> = ranges
+    let jobs: Vec<std::sync::Mutex<Option<Range<'_>>>> = ranges
         .into_iter()
         .map(|r| std::sync::Mutex::new(Some(r)))
         .collect();
-    let run = |job: &std::sync::Mutex<Option<Range<'_, V>>>| {
+    let run = |job: &std::sync::Mutex<Option<Range<'_>>>| {
         let range = job.lock().ok().and_then(|mut r| r.take())?;
         let mut own = Findings {
             errors: Vec::new(),
             max,
             truncated: false,
         };
-        let end = walk_range::<W, C, V>(&mut own, view, child, attributes, range);
+        let end = walk_range::<W, C>(&mut own, view, child, attributes, range);
         Some((own, end))
     };
     let (first_end, others) = std::thread::scope(|scope| {
@@ -1601,7 +1241,7 @@ fn walk_split<const W: usize, C: ChildLevel, V: Targets + Send>(
                     .ok()
             })
             .collect();
-        let first_end = walk_range::<W, C, V>(f, view, child, attributes, first);
+        let first_end = walk_range::<W, C>(f, view, child, attributes, first);
         let others: Vec<_> = threads
             .into_iter()
             .zip(&jobs)
@@ -1643,11 +1283,11 @@ const PREFETCH_RECORDS: usize = 12;
 /// Asks for the cache lines the pointers of the record at `pos` read (when
 /// it is before `to` and whole) and returns the next record's start.
 #[inline(always)]
-fn prefetch_record<const W: usize, V: Targets>(
+fn prefetch_record<const W: usize, C: ChildLevel>(
     sec: &[u8],
     pos: usize,
     to: usize,
-    targets: &V,
+    child: &C,
 ) -> usize {
     if pos >= to {
         return pos;
@@ -1665,7 +1305,7 @@ fn prefetch_record<const W: usize, V: Targets>(
         for (j, &b) in chunk.iter().enumerate() {
             p |= u32::from(b) << (8 * j);
         }
-        targets.prefetch(p);
+        child.prefetch(p);
     }
     pos + size
 }
@@ -1685,48 +1325,48 @@ pub(crate) fn prefetch<T>(at: &T) {
 }
 
 /// Walks one part of a node level; picks a build for the CPU it runs on.
-fn walk_range<const W: usize, C: ChildLevel, V: Targets>(
+fn walk_range<const W: usize, C: ChildLevel>(
     f: &mut Findings,
     view: &LevelView<'_>,
     child: &C,
     attributes: AttributeRule,
-    range: Range<'_, V>,
+    range: Range<'_>,
 ) -> Result<RangeEnd, Stop> {
     #[cfg(target_arch = "x86_64")]
     if has_popcnt() {
         // SAFETY: the CPU has the POPCNT instruction (checked just above),
         // the only feature `walk_range_popcnt` is compiled to use.
-        return unsafe { walk_range_popcnt::<W, C, V>(f, view, child, attributes, range) };
+        return unsafe { walk_range_popcnt::<W, C>(f, view, child, attributes, range) };
     }
-    walk_range_inline::<W, C, V>(f, view, child, attributes, range)
+    walk_range_inline::<W, C>(f, view, child, attributes, range)
 }
 
 /// [`walk_range_inline`] compiled with the POPCNT instruction (a record's
 /// size and a leaf's count are bit counts).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "popcnt")]
-fn walk_range_popcnt<const W: usize, C: ChildLevel, V: Targets>(
+fn walk_range_popcnt<const W: usize, C: ChildLevel>(
     f: &mut Findings,
     view: &LevelView<'_>,
     child: &C,
     attributes: AttributeRule,
-    range: Range<'_, V>,
+    range: Range<'_>,
 ) -> Result<RangeEnd, Stop> {
-    walk_range_inline::<W, C, V>(f, view, child, attributes, range)
+    walk_range_inline::<W, C>(f, view, child, attributes, range)
 }
 
 /// Walks the records of one part of a node level with pointer width `W`:
 /// framing, pointers, attributes; indexes its records for the parent level.
 #[inline(always)]
-fn walk_range_inline<const W: usize, C: ChildLevel, V: Targets>(
+fn walk_range_inline<const W: usize, C: ChildLevel>(
     f: &mut Findings,
     view: &LevelView<'_>,
     child: &C,
     attributes: AttributeRule,
-    range: Range<'_, V>,
+    range: Range<'_>,
 ) -> Result<RangeEnd, Stop> {
     let Range {
-        mut targets,
+        part,
         from,
         to,
         mut slots,
@@ -1749,16 +1389,11 @@ fn walk_range_inline<const W: usize, C: ChildLevel, V: Targets>(
     // the cache lines its pointers will read, so that the misses of many
     // records overlap instead of those of the few the core looks ahead to.
     let mut ahead = from;
-    if V::LOOKAHEAD {
-        for _ in 0..PREFETCH_RECORDS {
-            ahead = prefetch_record::<W, V>(sec, ahead, to, &targets);
-        }
+    for _ in 0..PREFETCH_RECORDS {
+        ahead = prefetch_record::<W, C>(sec, ahead, to, child);
     }
     while pos < to {
-        if V::LOOKAHEAD {
-            ahead = prefetch_record::<W, V>(sec, ahead, to, &targets);
-        }
-        targets.record(pos);
+        ahead = prefetch_record::<W, C>(sec, ahead, to, child);
         let Some(head_bytes) = sec.get(pos..pos + 4) else {
             complete = false;
             f.report(truncated_node(
@@ -1810,7 +1445,7 @@ fn walk_range_inline<const W: usize, C: ChildLevel, V: Targets>(
             for (j, &b) in chunk.iter().enumerate() {
                 p |= u32::from(b) << (8 * j);
             }
-            match targets.visit(p) {
+            match child.visit(p, part) {
                 Visit::Count(c) => count = count.saturating_add(c),
                 Visit::OutOfRange => {
                     count = UNKNOWN;
@@ -2060,17 +1695,11 @@ mod tests {
             .collect()
     }
 
-    /// One part, each pointer followed as the walk reaches it (the walk of
-    /// main before the partitions).
     fn one_walk() -> Walk {
         Walk {
             parts: 1,
             min_split_bytes: usize::MAX,
             sync_records: SYNC_RECORDS,
-            partition_table_bytes: u64::MAX,
-            slice_bytes: SLICE_BYTES,
-            chunk_pointers: CHUNK_POINTERS,
-            lookahead_table_bytes: LOOKAHEAD_TABLE_BYTES,
         }
     }
 
@@ -2081,26 +1710,6 @@ mod tests {
             parts,
             min_split_bytes: 0,
             sync_records,
-            partition_table_bytes: u64::MAX,
-            slice_bytes: SLICE_BYTES,
-            chunk_pointers: CHUNK_POINTERS,
-            lookahead_table_bytes: LOOKAHEAD_TABLE_BYTES,
-        }
-    }
-
-    /// [`walk_in`], every level's pointers partitioned into buckets of
-    /// `slice_bytes` of the child's tables (64 units at least).
-    fn partitioned_in(
-        parts: usize,
-        sync_records: usize,
-        slice_bytes: u64,
-        chunk_pointers: usize,
-    ) -> Walk {
-        Walk {
-            partition_table_bytes: 0,
-            slice_bytes,
-            chunk_pointers,
-            ..walk_in(parts, sync_records)
         }
     }
 
@@ -2164,60 +1773,51 @@ mod tests {
         assert!(unframed_hit < record_starts_hit, "{unframed_hit} unframed");
     }
 
-    /// A file of depth 7 corrupted as `seed` says: random bytes, zeroed
-    /// runs and flipped bits in the node levels (and, for some seeds, the
-    /// leaf level after them), for some seeds a level's last record made
-    /// too long.
-    fn corrupted(seed: u64) -> Vec<u8> {
-        let attributes = if seed % 4 == 3 {
-            AttributeKind::None
-        } else {
-            AttributeKind::VoxelCount
-        };
-        let mut bytes = build(7, 2 + seed % 3, seed, attributes);
-        let levels = node_levels(&bytes);
-        // Corrupt node levels (and, for some seeds, the leaf level
-        // after them): random bytes, zeroed runs, a record's mask.
-        let first = levels.iter().map(|l| l.0).min().expect("levels");
-        let end = bytes.len();
-        let mut h = mix(seed ^ 0x5EED);
-        for _ in 0..1 + seed % 5 {
-            h = mix(h);
-            let (offset, length, _) = levels[(h % levels.len() as u64) as usize];
-            let at = if seed % 7 == 6 {
-                first + (h >> 8) as usize % (end - first)
-            } else if length > 0 {
-                offset + (h >> 8) as usize % length
-            } else {
-                continue;
-            };
-            match (h >> 40) % 3 {
-                0 => bytes[at] = (h >> 48) as u8,
-                1 => {
-                    let run = 1 + (h >> 48) as usize % 12;
-                    let run_end = (at + run).min(end);
-                    bytes[at..run_end].fill(0);
-                }
-                _ => bytes[at] ^= 1 << ((h >> 48) % 8),
-            }
-        }
-        if seed % 6 == 5 {
-            // The last record of a level runs past its end (E042).
-            let (offset, length, width) = levels[(h % levels.len() as u64) as usize];
-            let sec = &bytes[offset..offset + length];
-            if let Some(&last) = record_starts(sec, usize::from(width)).last() {
-                bytes[offset + last] = 0xff;
-            }
-        }
-        bytes
-    }
-
     #[test]
     fn walks_in_parts_report_what_one_walk_reports() {
         let mut codes = std::collections::BTreeSet::new();
         let mut invalid = 0;
         for seed in 0..48u64 {
-            let bytes = corrupted(seed);
+            let attributes = if seed % 4 == 3 {
+                AttributeKind::None
+            } else {
+                AttributeKind::VoxelCount
+            };
+            let mut bytes = build(7, 2 + seed % 3, seed, attributes);
+            let levels = node_levels(&bytes);
+            // Corrupt node levels (and, for some seeds, the leaf level
+            // after them): random bytes, zeroed runs, a record's mask.
+            let first = levels.iter().map(|l| l.0).min().expect("levels");
+            let end = bytes.len();
+            let mut h = mix(seed ^ 0x5EED);
+            for _ in 0..1 + seed % 5 {
+                h = mix(h);
+                let (offset, length, _) = levels[(h % levels.len() as u64) as usize];
+                let at = if seed % 7 == 6 {
+                    first + (h >> 8) as usize % (end - first)
+                } else if length > 0 {
+                    offset + (h >> 8) as usize % length
+                } else {
+                    continue;
+                };
+                match (h >> 40) % 3 {
+                    0 => bytes[at] = (h >> 48) as u8,
+                    1 => {
+                        let run = 1 + (h >> 48) as usize % 12;
+                        let run_end = (at + run).min(end);
+                        bytes[at..run_end].fill(0);
+                    }
+                    _ => bytes[at] ^= 1 << ((h >> 48) % 8),
+                }
+            }
+            if seed % 6 == 5 {
+                // The last record of a level runs past its end (E042).
+                let (offset, length, width) = levels[(h % levels.len() as u64) as usize];
+                let sec = &bytes[offset..offset + length];
+                if let Some(&last) = record_starts(sec, usize::from(width)).last() {
+                    bytes[offset + last] = 0xff;
+                }
+            }
             for max_errors in [100_000, 1, 2, 5, 17] {
                 let options = ValidateOptions {
                     max_errors,
@@ -2254,113 +1854,6 @@ mod tests {
         ] {
             assert!(codes.contains(&code), "no {code:?} in {codes:?}");
         }
-    }
-
-    /// The walks that partition every level's pointers (buckets of 64
-    /// units or of many, chunks of a few pointers or of all, one part or
-    /// several, splits confirmed or not) and the direct walk that
-    /// prefetches ahead report what one direct walk reports.
-    #[test]
-    fn partitioned_walks_report_what_one_walk_reports() {
-        let mut codes = std::collections::BTreeSet::new();
-        for seed in 0..48u64 {
-            let bytes = corrupted(seed);
-            for max_errors in [100_000, 1, 2, 5, 17] {
-                let options = ValidateOptions {
-                    max_errors,
-                    ..ValidateOptions::default()
-                };
-                let one = validate_walked(&bytes, &options, one_walk());
-                if max_errors == 100_000 {
-                    codes.extend(one.errors.iter().map(|e| e.code));
-                }
-                let lookahead = Walk {
-                    lookahead_table_bytes: 0,
-                    ..one_walk()
-                };
-                let mut walks = vec![lookahead];
-                for (parts, sync_records) in [(1, SYNC_RECORDS), (2, SYNC_RECORDS), (3, 0), (3, 1)]
-                {
-                    for (slice_bytes, chunk_pointers) in
-                        [(1, 1), (1, 7), (1 << 20, 1 << 30), (64, 100)]
-                    {
-                        walks.push(partitioned_in(
-                            parts,
-                            sync_records,
-                            slice_bytes,
-                            chunk_pointers,
-                        ));
-                    }
-                }
-                for walk in walks {
-                    let report = validate_walked(&bytes, &options, walk);
-                    assert_eq!(
-                        report, one,
-                        "seed {seed}, {walk:?}, at most {max_errors} findings"
-                    );
-                }
-            }
-        }
-        // The corruptions reach the rules the partitions decide.
-        for code in [
-            ErrorCode::PointerOutOfRange,
-            ErrorCode::PointerNotAtNode,
-            ErrorCode::UnreferencedNode,
-            ErrorCode::WrongVoxelCount,
-            ErrorCode::TruncatedNode,
-        ] {
-            assert!(codes.contains(&code), "no {code:?} in {codes:?}");
-        }
-    }
-
-    /// The partitioned walk marks and counts as the direct one: valid files
-    /// stay valid (every record referenced, every count right), and the
-    /// levels are partitioned into many buckets.
-    #[test]
-    fn valid_files_stay_valid_partitioned() {
-        for seed in 0..4 {
-            let bytes = build(8, 4, seed, AttributeKind::VoxelCount);
-            let options = ValidateOptions::default();
-            for walk in [
-                partitioned_in(1, SYNC_RECORDS, 1, 1 << 30),
-                partitioned_in(2, SYNC_RECORDS, 256, 50),
-                partitioned_in(3, 0, 1, 3),
-            ] {
-                let report = validate_walked(&bytes, &options, walk);
-                assert!(report.is_valid(), "{walk:?}: {:?}", report.errors);
-            }
-        }
-        // Buckets of 64 words: a level of depth 8 has a few hundred.
-        let bytes = build(8, 4, 0, AttributeKind::VoxelCount);
-        let (_, length, _) = node_levels(&bytes)
-            .into_iter()
-            .max_by_key(|l| l.1)
-            .expect("levels");
-        let units = length as u64 / 4;
-        assert!(units.div_ceil(1 << pointer_partition::shift_for(units, units * 3 / 2, 1)) >= 100);
-    }
-
-    /// Result codes: every visit a partitioned level can give comes back.
-    #[test]
-    fn visit_codes_round_trip() {
-        // The largest count of a 32-bit slot (`OwnCounts::new`).
-        for count in [0, 1, 64, 4096, 1 << 30] {
-            assert!(
-                matches!(code_visit(visit_code(Visit::Count(count))), Visit::Count(n) if n == count)
-            );
-        }
-        assert!(matches!(
-            code_visit(visit_code(Visit::Count(UNKNOWN))),
-            Visit::Count(UNKNOWN)
-        ));
-        assert!(matches!(
-            code_visit(visit_code(Visit::NotAtNode)),
-            Visit::NotAtNode
-        ));
-        assert!(matches!(
-            code_visit(visit_code(Visit::OutOfRange)),
-            Visit::OutOfRange
-        ));
     }
 
     #[test]

@@ -442,15 +442,8 @@ fn next_canonical(
     below_ranked: &Ranked,
     counts: &[u32],
 ) -> Option<Vec<(u32, u8)>> {
-    let mut next: Vec<(u32, u8)> = (0..counts.len() as u32)
-        .filter(|&c| counts[c as usize] > 1)
-        .map(|c| (c, 0))
-        .collect();
-    next.par_sort_unstable_by(|a, b| {
-        counts[b.0 as usize]
-            .cmp(&counts[a.0 as usize])
-            .then(a.0.cmp(&b.0))
-    });
+    // The shared classes by reference count, as the writer orders them.
+    let mut next = crate::v2enc::shared_by_count(counts);
     // The sequential children, in the order of their parents: chunks of
     // the parents on rayon's threads, concatenated in order.
     let sequential: Vec<Vec<(u32, u8)>> = canonical

@@ -42,6 +42,7 @@ pub mod morton;
 #[cfg(feature = "output")]
 pub mod output;
 pub mod packed_colors;
+mod prefetch;
 pub mod reader;
 pub mod stats;
 pub mod symmetry;

@@ -50,6 +50,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use rayon::prelude::*;
 
 use crate::error::{ErrorCode, FormatError};
+use crate::prefetch::prefetch;
 use crate::reader::Dag;
 use crate::symmetry::{NodeKey, reflect_leaf};
 use crate::v2::{
@@ -1011,21 +1012,6 @@ fn bits_of(v: u64) -> u32 {
 /// early overlaps them.
 const AHEAD: usize = 16;
 
-/// Asks the cache for the line of `item` (a hint: it changes no result).
-#[inline(always)]
-fn prefetch<T>(item: &T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: a prefetch reads nothing into the program and cannot fault;
-    // the pointer comes from a reference anyway.
-    unsafe {
-        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
-            (item as *const T).cast::<i8>(),
-        );
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = item;
-}
-
 /// The address of a class below in [`LevelLayout::addr_of_rank`] that is
 /// referenced once: a sequential child, which has no reference of its own.
 const SEQUENTIAL: u64 = u64::MAX;
@@ -1453,7 +1439,7 @@ fn count_references(keys: &[NodeKey], counts: &[AtomicU32]) {
 /// stored order (§23.7): by reference count, most first, then by rank; each
 /// stored without a reflection. The sequential classes follow them, by
 /// parent.
-fn shared_by_count(counts: &[u32]) -> Vec<(u32, u8)> {
+pub(crate) fn shared_by_count(counts: &[u32]) -> Vec<(u32, u8)> {
     let mut shared: Vec<(u32, u8)> = (0..counts.len() as u32)
         .filter(|&i| counts[i as usize] > 1)
         .map(|i| (i, 0))

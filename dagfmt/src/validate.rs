@@ -73,6 +73,7 @@
 use crate::error::{ErrorCode, FormatError};
 use crate::layout::{self, AttributeKind, COUNT_SATURATED, MAX_FILE_SIZE, SectionKind};
 use crate::packed_colors;
+use crate::prefetch::prefetch;
 use crate::reader::{self, LayoutChecks, SectionEntry};
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicU8, AtomicU64, Ordering::Relaxed};
@@ -1308,20 +1309,6 @@ fn prefetch_record<const W: usize, C: ChildLevel>(
         child.prefetch(p);
     }
     pos + size
-}
-
-/// Asks for the cache line holding `*at` (a hint: no effect on results).
-#[inline(always)]
-pub(crate) fn prefetch<T>(at: &T) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        // SAFETY: SSE is part of the x86-64 baseline; a prefetch reads
-        // nothing and faults on no address.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(at).cast()) };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = at;
 }
 
 /// Walks one part of a node level; picks a build for the CPU it runs on.

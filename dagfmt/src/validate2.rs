@@ -37,9 +37,10 @@
 
 use crate::error::{ErrorCode, FormatError};
 use crate::layout::{AttributeKind, COUNT_SATURATED};
+use crate::prefetch::prefetch;
 use crate::reader::{self, SectionEntry};
 use crate::v2::{self, Child, LevelView, Node2, References};
-use crate::validate::{Findings, Stop, prefetch};
+use crate::validate::{Findings, Stop};
 
 /// The record starts of a 2.0 node level as a bitmap with ranks, so that
 /// the item a byte offset names is found in O(1): a binary search over the

@@ -943,8 +943,8 @@ fn check_memory(meter: &MemoryMeter, limit: u64, what: &str) -> Result<(), Conve
 }
 
 /// Room left for allocator slack, thread stacks and whatever the estimates
-/// miss.
-fn margin(limit: u64) -> u64 {
+/// miss (the conversion's, the merge's and the upgrade's budgets).
+pub(crate) fn margin(limit: u64) -> u64 {
     (limit / 16).max(24 << 20)
 }
 

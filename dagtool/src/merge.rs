@@ -438,7 +438,7 @@ pub fn merge(
         + opened.iter().map(|p| p.bytes).max().unwrap_or(0)
         + largest_batch;
     let available = limit
-        .saturating_sub(meter.resident().unwrap_or(0) + colour_cap + (limit / 16).max(24 << 20));
+        .saturating_sub(meter.resident().unwrap_or(0) + colour_cap + crate::convert::margin(limit));
     let in_memory = opts.buckets.is_none() && needed <= available;
     let mut levels = if in_memory {
         let mut m = MemoryMerge::new(depth, header.attribute_kind, split)?;
@@ -483,7 +483,7 @@ pub fn merge(
     }
     drop(opened);
     let budget = limit
-        .saturating_sub(meter.resident().unwrap_or(0) + (limit / 16).max(24 << 20))
+        .saturating_sub(meter.resident().unwrap_or(0) + crate::convert::margin(limit))
         .max(MIN_MERGE_BUDGET);
     let colours = colours.map(ColourSink::finish).transpose()?;
     let dag = match levels {

@@ -81,7 +81,7 @@ pub fn upgrade_within(
         |e: &dyn std::fmt::Display| ConvertError::Input(format!("{}: {e}", input.display()));
     let dag = dagfmt::Dag::open(bytes).map_err(|e| named(&e))?;
     let budget = limit.saturating_sub(
-        meter.resident().unwrap_or(0) + bytes.len() as u64 + (limit / 16).max(24 << 20),
+        meter.resident().unwrap_or(0) + bytes.len() as u64 + crate::convert::margin(limit),
     );
     let options = dagfmt::v2enc::EncodeOptions {
         memory_budget: Some(budget),
